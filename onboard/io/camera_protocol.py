@@ -6,6 +6,11 @@ that message's field names, in its wire units; :func:`onboard.io.mavlink_wire.me
 #275 / #276 are encoded by :mod:`onboard.io.mavlink_wire` (the Track mapping and the field checks live
 there).  Times (``now_s``, ``time_boot_ms``) are passed in.
 
+A command's *requester* is its sender's (system, component) and the link it came on (:attr:`CameraCommand.via`,
+the adapter's, opaque here).  Replies go back to it (:attr:`Outgoing.reply_to` and ``via``), and one requester's
+commands never supersede or answer another's: ground stations share ids (QGC is 255/190 on every copy), so two on
+different links are kept apart.
+
 What a ground station sees (MAVLink common.xml; QGroundControl's src/Camera discovery):
 
 * HEARTBEAT every ``heartbeat_interval_s`` as MAV_TYPE_CAMERA (30), MAV_AUTOPILOT_INVALID, from the
@@ -105,9 +110,9 @@ from __future__ import annotations
 import logging
 import math
 from collections import OrderedDict
-from collections.abc import Mapping
+from collections.abc import Hashable, Mapping
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, NamedTuple
 
 from onboard.core.checks import is_nonnegative_number, is_positive_number, require_each
 from onboard.core.counters import RejectCounter
@@ -364,19 +369,29 @@ class CameraCommand:
     COMMAND_INT's x/y, as received, are params 5 and 6: MAV_CMD_CAMERA_TRACK_RECTANGLE's target camera id is x).
 
     ``confirmation``: COMMAND_LONG's (0 = first transmission, 1-255 = retransmissions); 0 for a
-    COMMAND_INT, which has no such field."""
+    COMMAND_INT, which has no such field.
+
+    ``via``: the link the command came on, as the adapter names it (:class:`~onboard.io.gcs_link.GcsLink`: the
+    endpoint and, on ``udpin``, the source address), any hashable value, opaque here.  The requester is the
+    sender's ids *and* its link: ground stations share ids (QGC is 255/190 on every copy), so two on different
+    links are two requesters; each reply carries ``via`` back (:attr:`Outgoing.via`)."""
 
     command: int
     params: tuple[float, float, float, float, float, float, float]
     src_system: int
     src_component: int
     confirmation: int = 0
+    via: Hashable | None = None
 
     def __post_init__(self) -> None:
         if len(self.params) != 7:
             raise InputError(f"CameraCommand.params must be 7 numbers, got {len(self.params)}")
         object.__setattr__(self, "params", tuple(float(p) for p in self.params))
         _int_in("CameraCommand.confirmation", self.confirmation, 0, 255)
+        try:
+            hash(self.via)
+        except TypeError:
+            raise InputError(f"CameraCommand.via must be hashable, got {self.via!r}") from None
 
 
 @dataclass(frozen=True)
@@ -385,12 +400,26 @@ class Outgoing:
 
     ``reply_to``: ``(system, component)`` of the requester, for an ACK, STATUSTEXT or requested message
     (the adapter sends it where the request came from), or None for everybody (every ground-station
-    endpoint).
+    endpoint).  ``via``: the request's :attr:`CameraCommand.via`, the link to send a reply on (None: the
+    adapter finds it by ``reply_to``).
     """
 
     msg: str
     fields: Mapping[str, Any]
     reply_to: tuple[int, int] | None = None
+    via: Hashable | None = None
+
+
+class _Requester(NamedTuple):
+    """Who sent a command: its ids and the link it came on (:attr:`CameraCommand.via`)."""
+
+    system: int
+    component: int
+    via: Hashable | None
+
+    @property
+    def ids(self) -> tuple[int, int]:
+        return (self.system, self.component)
 
 
 def camera_information(
@@ -431,7 +460,7 @@ def _interval_s(hz: float) -> float | None:
 class _Pending:
     request: TrackRequest
     command: int
-    requester: tuple[int, int]
+    requester: _Requester
     deadline_s: float
     params: tuple[float, ...]
     received_s: float
@@ -508,7 +537,7 @@ class CameraProtocol:
         #: requests superseded while the pipeline had them: no ACK, but their outcome still sets the mode
         self._superseded: dict[int, _Pending] = {}
         #: (requester, command) -> the answer of its latest command, while a retransmission of it may come
-        self._decided: OrderedDict[tuple[tuple[int, int], int], _Decided] = OrderedDict()
+        self._decided: OrderedDict[tuple[_Requester, int], _Decided] = OrderedDict()
         self._next_request_id = 1
         self._was_tracking = False
 
@@ -519,7 +548,7 @@ class CameraProtocol:
     ) -> tuple[list[Outgoing], TrackRequest | None]:
         """Answer one command (``track``: the newest track, for a one-shot #275/#276 request)."""
         self._count(_COMMAND_COUNTERS.get(cmd.command, "cmd_unsupported"))
-        to = (cmd.src_system, cmd.src_component)
+        to = _Requester(cmd.src_system, cmd.src_component, cmd.via)
         c, p = cmd.command, cmd.params
         if c in _TRACK_COMMANDS:
             return self._track_command(cmd, now_s)
@@ -556,7 +585,7 @@ class CameraProtocol:
         return [self._ack(c, MAV_RESULT_UNSUPPORTED, to, reason="not a command this camera answers")], None
 
     def _request(
-        self, command: int, msg_id: int | None, index: float, to, time_boot_ms: int, track: Track | None
+        self, command: int, msg_id: int | None, index: float, to: _Requester, time_boot_ms: int, track: Track | None
     ) -> list[Outgoing]:
         msgs = self._message(msg_id, index, time_boot_ms, track) if msg_id is not None else None
         if msgs is None and msg_id == MSG_TRACKING_GEO_STATUS:
@@ -571,7 +600,7 @@ class CameraProtocol:
                 reason = f"message {msg_id} is not one this camera sends"
             return [self._ack(command, MAV_RESULT_DENIED, to, reason=reason)]
         # the ACK first, then the message (common.xml: "the message is sent after the ACK"), both to the requester
-        return [self._ack(command, MAV_RESULT_ACCEPTED, to)] + [replace(m, reply_to=to) for m in msgs]
+        return [self._ack(command, MAV_RESULT_ACCEPTED, to)] + [replace(m, reply_to=to.ids, via=to.via) for m in msgs]
 
     @staticmethod
     def _heartbeat() -> Outgoing:
@@ -690,14 +719,17 @@ class CameraProtocol:
             return int(round(self.heartbeat_interval_s * 1e6))
         return 0
 
-    def _reply_interval(self, command: int, p_msg_id: float, to) -> list[Outgoing]:
+    def _reply_interval(self, command: int, p_msg_id: float, to: _Requester) -> list[Outgoing]:
         msg_id = _msg_id(p_msg_id)
         if msg_id is None or msg_id > 0xFFFF:  # MESSAGE_INTERVAL.message_id is a uint16
             return [self._ack(command, MAV_RESULT_DENIED, to, reason=f"message id {p_msg_id:g} is not a uint16")]
         return [
             self._ack(command, MAV_RESULT_ACCEPTED, to),
             Outgoing(
-                "message_interval", dict(message_id=msg_id, interval_us=self.message_interval_us(msg_id)), reply_to=to
+                "message_interval",
+                dict(message_id=msg_id, interval_us=self.message_interval_us(msg_id)),
+                reply_to=to.ids,
+                via=to.via,
             ),
         ]
 
@@ -724,7 +756,7 @@ class CameraProtocol:
         return MAV_RESULT_ACCEPTED, ""
 
     def _track_command(self, cmd: CameraCommand, now_s: float) -> tuple[list[Outgoing], TrackRequest | None]:
-        c, p, to = cmd.command, cmd.params, (cmd.src_system, cmd.src_component)
+        c, p, to = cmd.command, cmd.params, _Requester(cmd.src_system, cmd.src_component, cmd.via)
         fields, why = self._track_fields(c, p)
         if fields is None:  # checked first: a refused command leaves the one waiting or answered alone
             return self._refuse(c, MAV_RESULT_DENIED, why, to), None
@@ -888,14 +920,16 @@ class CameraProtocol:
 
     # ------------------------------------------------------------------ helpers
 
-    def _ack(self, command: int, result: int, to: tuple[int, int], progress: int = 0, reason: str = "") -> Outgoing:
+    def _ack(self, command: int, result: int, to: _Requester, progress: int = 0, reason: str = "") -> Outgoing:
         """The COMMAND_ACK; a refusing result is counted in the shared counter with ``reason`` (module docstring)."""
         self._count(f"ack_{result}")
         refusal = _REFUSAL_REASONS.get(result)
         if refusal is not None and self.counter is not None:
             # INFO: a refused command is the sender's mistake or a limit of ours, not a fault of the daemon, but
             # an operator asking why a click did nothing finds it in the log
-            self.counter.count(refusal, f"command {command} from {to[0]}/{to[1]}: {reason or '-'}", level=logging.INFO)
+            self.counter.count(
+                refusal, f"command {command} from {to.system}/{to.component}: {reason or '-'}", level=logging.INFO
+            )
         return Outgoing(
             "command_ack",
             dict(
@@ -903,18 +937,21 @@ class CameraProtocol:
                 result=result,
                 progress=progress,
                 result_param2=0,
-                target_system=to[0],
-                target_component=to[1],
+                target_system=to.system,
+                target_component=to.component,
             ),
-            reply_to=to,
+            reply_to=to.ids,
+            via=to.via,
         )
 
-    def _refuse(self, command: int, result: int, reason: str, to: tuple[int, int]) -> list[Outgoing]:
+    def _refuse(self, command: int, result: int, reason: str, to: _Requester) -> list[Outgoing]:
         self.last_refusal = f"command {command}: {reason}"
         text = f"irtrack: {reason}"[:STATUSTEXT_MAX_CHARS]
         return [
             self._ack(command, result, to, reason=reason),
-            Outgoing("statustext", dict(severity=MAV_SEVERITY_WARNING, text=text.encode()), reply_to=to),
+            Outgoing(
+                "statustext", dict(severity=MAV_SEVERITY_WARNING, text=text.encode()), reply_to=to.ids, via=to.via
+            ),
         ]
 
     def _count(self, key: str) -> None:

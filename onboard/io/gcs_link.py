@@ -14,13 +14,14 @@ The camera's protocol lives in :mod:`onboard.io.camera_protocol` (pure); this mo
 * :meth:`GcsLink.poll` reads every endpoint without blocking and returns the COMMAND_LONG /
   COMMAND_INT addressed to us (target system 0 or ours, target component 0 or ours) as
   :class:`~onboard.io.camera_protocol.CameraCommand` (with COMMAND_LONG's ``confirmation``, which tells a
-  retransmission from a new command); it remembers on which endpoint (and, on
-  ``udpin``, from which address) each requester (system, component) spoke last, so replies go back
-  there.
+  retransmission from a new command), whose ``via`` is where it came from: ``(endpoint index, source address)``,
+  the address on ``udpin``, None on the other kinds (one peer each).  Ground stations share ids (QGC is
+  255/190 on every copy): the protocol keys requesters by ``via`` too, and a reply carries it back.  It also
+  remembers on which endpoint and address each (system, component) spoke last.
 * :meth:`GcsLink.send` sends an :class:`~onboard.io.camera_protocol.Outgoing` as the message of that
-  name (:func:`onboard.io.mavlink_wire.message_from_fields`): to the requester's endpoint and address
-  when ``reply_to`` is set and known, else to every endpoint.  Send errors are counted
-  (``gcs_tx_error``), never raised.
+  name (:func:`onboard.io.mavlink_wire.message_from_fields`): a reply to its ``via`` (the endpoint and address of
+  its request), or without one to where its ``reply_to`` spoke last; everything else to every endpoint.  Send
+  errors are counted (``gcs_tx_error``), never raised.
 * ``signing_key`` (the autopilot link's, ``mavlink.signing_key_file``): everything sent is signed and only
   verified packets are taken, on every endpoint; refusals are counted ``gcs_unsigned``, ``gcs_v1_refused``,
   ``gcs_signature_bad|replay|stale`` (:func:`onboard.io.mavlink_transport.signature_refusal`).  A refused
@@ -439,7 +440,7 @@ class GcsLink:
                     raw = (msg.param1, msg.param2, msg.param3, msg.param4, float(msg.x), float(msg.y), msg.z)
                 p1, p2, p3, p4, p5, p6, p7 = (float(p) if p is not None else math.nan for p in raw)
                 params = (p1, p2, p3, p4, p5, p6, p7)
-                out.append(CameraCommand(int(msg.command), params, src[0], src[1], confirmation))
+                out.append(CameraCommand(int(msg.command), params, src[0], src[1], confirmation, via=(idx, addr)))
         return out
 
     def send(self, out: Outgoing) -> int:
@@ -449,8 +450,12 @@ class GcsLink:
         if self._dialling:
             self._settle(self._clock())
         targets: list[tuple[int, Address | None]] = [(idx, None) for idx in range(len(self._conns))]
-        if out.reply_to is not None and out.reply_to in self._route:
-            targets = [self._route[out.reply_to]]
+        if out.reply_to is not None:
+            via = self._via(out.via)
+            if via is not None:
+                targets = [via]
+            elif out.reply_to in self._route:
+                targets = [self._route[out.reply_to]]
         now_s = self._clock()
         n = 0
         for idx, addr in targets:
@@ -472,6 +477,15 @@ class GcsLink:
                 self._count("gcs_tx_error", f"{out.msg} on {self.endpoints[idx]}: {type(exc).__name__}: {exc}")
         self.messages_tx += n
         return n
+
+    def _via(self, via) -> tuple[int, Address | None] | None:
+        """``via`` when it is one :meth:`poll` made (an endpoint's index, a source address or None), else None."""
+        if not isinstance(via, tuple) or len(via) != 2:
+            return None
+        idx, addr = via
+        if isinstance(idx, int) and 0 <= idx < len(self._conns) and (addr is None or isinstance(addr, tuple)):
+            return idx, addr
+        return None
 
     def close(self) -> None:
         for conn in self._conns:

@@ -486,6 +486,32 @@ def test_another_requester_or_another_command_does_not_supersede():
     ]
 
 
+def test_two_ground_stations_with_the_same_ids_on_different_links_each_get_their_ack():
+    """QGC's default ids are 255/190 on every copy: the link a command came on (``via``, the adapter's) tells two
+    ground stations apart, so neither supersedes the other and each ACK goes back where its command came from."""
+    proto = _proto()
+    click = (0.25, 0.5, 0.03)
+    _, a = proto.handle(CameraCommand(cp.MAV_CMD_CAMERA_TRACK_POINT, (*click, 0, 0, 0, 0), *GCS, via="A"), 1.0, 0)
+    _, b = proto.handle(CameraCommand(cp.MAV_CMD_CAMERA_TRACK_POINT, (*click, 0, 0, 0, 0), *GCS, 1, via="B"), 1.0, 0)
+    assert a is not None and b is not None and proto.pending_requests() == 2  # B's resend flag: not A's command
+    done_a = proto.complete(TrackResult(a.request_id, True))
+    done_b = proto.complete(TrackResult(b.request_id, False, "no warm object there"))
+    assert [(o.msg, o.reply_to, o.via) for o in done_a] == [("command_ack", GCS, "A")]
+    assert [(o.msg, o.reply_to, o.via) for o in done_b] == [("command_ack", GCS, "B"), ("statustext", GCS, "B")]
+    assert (_ack(done_a)["result"], _ack(done_b)["result"]) == (mav.MAV_RESULT_ACCEPTED, mav.MAV_RESULT_FAILED)
+    # each one's retransmission gets its own answer
+    out, _ = proto.handle(CameraCommand(cp.MAV_CMD_CAMERA_TRACK_POINT, (*click, 0, 0, 0, 0), *GCS, 1, via="A"), 2, 0)
+    assert (_ack(out)["result"], out[0].via) == (mav.MAV_RESULT_ACCEPTED, "A")
+    # replies to other requests go back on the link too
+    out, _ = proto.handle(CameraCommand(cp.MAV_CMD_REQUEST_MESSAGE, (259, 0, 0, 0, 0, 0, 0), *GCS, via="B"), 2, 0)
+    assert [o.via for o in out] == ["B", "B"]
+
+
+def test_a_commands_link_must_be_hashable():
+    with pytest.raises(InputError, match="via"):
+        CameraCommand(cp.MAV_CMD_CAMERA_TRACK_POINT, (0.5,) * 7, *GCS, via=["A"])
+
+
 def test_confirmation_must_be_a_uint8():
     with pytest.raises(InputError, match="confirmation"):
         _cmd(cp.MAV_CMD_CAMERA_TRACK_POINT, 0.5, 0.5, 0.1, confirmation=256)

@@ -16,7 +16,7 @@ from pymavlink.dialects.v20 import common as mav
 from groundsim.io.ports import free_udp_port
 from onboard.core.counters import RejectCounter
 from onboard.core.errors import ConfigError
-from onboard.io.camera_protocol import CameraCommand
+from onboard.io.camera_protocol import CameraCommand, TrackResult
 from onboard.io.gcs_link import MAX_PEERS, PEER_TIMEOUT_S, GcsLink
 from tests.fakes import FakeClock, silent_tcp_server
 from tests.onboard.test_camera_protocol import _proto
@@ -28,6 +28,7 @@ SYSID = 1
 GCS = (255, 190)  # QGC's system / component
 CUT_DATAGRAM = b"\xfd\x40\x00\x00\x00"  # a MAVLink 2 header announcing 64 payload bytes, cut after 5
 N_ROUNDS = 5
+X_TOL = 1e-6  # a normalised coordinate through COMMAND_LONG's float32
 
 
 class Peer:
@@ -84,11 +85,13 @@ class Peer:
 class Rig:
     """A GcsLink on ``udpin:127.0.0.1:PORT`` with a fake clock, a counter and the camera protocol."""
 
-    def __init__(self, **link_kw) -> None:
+    def __init__(self, before: tuple[str, ...] = (), **link_kw) -> None:
+        """``before``: endpoints listed before the ``udpin`` one."""
         self.port = free_udp_port()
         self.clock = FakeClock()
         self.counters = RejectCounter(clock=self.clock)
-        self.link = GcsLink([f"udpin:127.0.0.1:{self.port}"], 100, counter=self.counters, clock=self.clock, **link_kw)
+        endpoints = [*before, f"udpin:127.0.0.1:{self.port}"]
+        self.link = GcsLink(endpoints, 100, counter=self.counters, clock=self.clock, **link_kw)
         self.link.set_system_id(SYSID)
         self.proto = _proto()
         self.peers: list[Peer] = []
@@ -215,6 +218,57 @@ def test_a_reply_goes_to_the_address_of_the_command_only(rig):
     assert rig.heartbeat_out() == 1  # a periodic message, to both peers: shows other's socket is served
     assert rig.drive(lambda: gcs.types("HEARTBEAT") and other.types("HEARTBEAT"))
     assert [m.get_type() for m in other.got] == ["HEARTBEAT"]
+
+
+def test_ground_stations_with_the_same_ids_on_two_endpoints_and_two_addresses_each_get_their_own_ack():
+    """Three ground stations, all QGC's default 255/190: one on a ``udpout`` endpoint, two at different addresses of
+    a ``udpin`` one.  Each click is decided by the pipeline; each station gets its own ACK only (keyed by the ids
+    alone, the later clicks superseded the earlier and every ACK went where the ids spoke last)."""
+    out_port = free_udp_port()
+    a = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)  # the station the udpout endpoint sends to
+    a.bind(("127.0.0.1", out_port))
+    a.setblocking(False)
+    rig = Rig(before=(f"udpout:127.0.0.1:{out_port}",))
+    try:
+        hb = [o for o in rig.proto.tick(0.0, None) if o.msg == "heartbeat"][0]
+        assert rig.link.send(hb) == 1  # udpout only: the udpin endpoint has no peer yet
+        select.select([a], [], [], WAIT_S)
+        _, link_addr = a.recvfrom(65535)  # where the udpout endpoint sends from, which A answers
+        b1, b2 = rig.peer(), rig.peer()
+        clicks = {"a": 0.2, "b1": 0.5, "b2": 0.8}
+        a_mav = mav.MAVLink(None, srcSystem=GCS[0], srcComponent=GCS[1])
+        a.sendto(_click(clicks["a"]).pack(a_mav), link_addr)
+        b1.send(_click(clicks["b1"]))
+        b2.send(_click(clicks["b2"]))
+        commands: list[CameraCommand] = []
+        deadline = time.monotonic() + WAIT_S
+        while len(commands) < 3 and time.monotonic() < deadline:
+            commands += rig.link.poll()
+            select.select(rig.link.filenos(), [], [], 0.01)
+        assert len(commands) == 3
+        request_of = {c.params[0]: rig.proto.handle(c, rig.clock(), 0)[1] for c in commands}
+        assert rig.proto.pending_requests() == 3
+        accepted = {"a": True, "b1": False, "b2": True}
+        for name, x in clicks.items():
+            (req,) = [r for x_sent, r in request_of.items() if abs(x_sent - x) < X_TOL]
+            result = TrackResult(req.request_id, accepted[name], "nothing there")
+            for out in rig.proto.complete(result):
+                assert rig.link.send(out) == 1
+        assert rig.drive(lambda: b1.types("COMMAND_ACK") and b2.types("COMMAND_ACK"))
+        select.select([a], [], [], WAIT_S)
+        a_got = mav.MAVLink(None).parse_buffer(a.recv(65535)) or []
+        got = {
+            name: [m.result for m in msgs if m.get_type() == "COMMAND_ACK"]
+            for name, msgs in (("a", a_got), ("b1", b1.got), ("b2", b2.got))
+        }
+        assert got == {"a": [mav.MAV_RESULT_ACCEPTED], "b1": [mav.MAV_RESULT_FAILED], "b2": [mav.MAV_RESULT_ACCEPTED]}
+    finally:
+        rig.close()
+        a.close()
+
+
+def _click(x: float):
+    return mav.MAVLink_command_long_message(SYSID, 100, mav.MAV_CMD_CAMERA_TRACK_POINT, 0, x, 0.5, 0.03, 0, 0, 0, 0)
 
 
 def test_a_silent_peer_is_dropped_after_the_timeout_and_readmitted_when_heard(rig):
