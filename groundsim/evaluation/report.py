@@ -219,7 +219,7 @@ def format_closed_loop(summary: list[dict]) -> str:
     g = CLOSED_LOOP_GOALS
     lines = markdown_head(
         "| scenario | navigation errors | published 3-D position, tracking frames after 3 s (>= 95 %) | "
-        "published beyond 3 sigma (<= 1 %) | observable, frames after 5 s (>= 60 %; P2 40 %) | "
+        "published beyond 3 sigma (<= 1 %); its ellipsoid | observable, frames after 5 s (>= 60 %; P2 40 %) | "
         "median err / range, observable frames (<= 2 %) | median err / range, all published after 5 s | "
         "first observable s | centroid sigma px (chain; baseline) | observable after 5 s at the bound |"
     )
@@ -230,6 +230,7 @@ def format_closed_loop(summary: list[dict]) -> str:
             return "" if x is None else ("" if ok(x) else " **miss**")
 
         pub, bey = r.get("published_share_after_3s"), r.get("beyond_3sigma_published")
+        ell = r.get("beyond_3sigma_ellipsoid_published")
         obs, err = r.get("observable_share_after_5s"), r.get("median_err_range_observable_pct")
         at_bound = r.get("observable_share_after_5s_at_bound")
         obs_mark = mark(obs, lambda x, goal=obs_goal: x >= goal)
@@ -238,7 +239,7 @@ def format_closed_loop(summary: list[dict]) -> str:
         lines.append(
             f"| {r.get('label', r['scenario'])} | {r.get('nav_noise') or '-'} | "
             f"{_f(_pct(pub), '.0f', ' %')}{mark(pub, lambda x: x >= g['published'])} | "
-            f"{_f(_pct(bey), '.1f', ' %')}{mark(bey, lambda x: x <= g['beyond'])} | "
+            f"{_f(_pct(bey), '.1f', ' %')}{mark(bey, lambda x: x <= g['beyond'])}; {_f(_pct(ell), '.1f', ' %')} | "
             f"{_f(_pct(obs), '.0f', ' %')}{obs_mark} | "
             f"{_f(err, '.2f', ' %')}{mark(err, lambda x: x <= g['err_pct'])} | "
             f"{_f(r.get('median_err_range_published_after_5s_pct'), '.2f', ' %')} | {_f(r.get('closed_loop_first_observable_s'), '.1f')} | "

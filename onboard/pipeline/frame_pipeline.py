@@ -90,6 +90,7 @@ from onboard.core.irframe import ENCODING_MONO8, ENCODING_MONO16, IrFrame, IrFra
 from onboard.core.pose_types import PoseAt
 from onboard.core.status import RollingStats
 from onboard.core.track import LineOfSight, Track, line_of_sight_ned
+from onboard.estimation.map_estimator import across_range_widened
 from onboard.estimation.time_offset import TimeOffsetEstimate, TimeOffsetEstimator
 from onboard.pipeline.admission import FrameAdmission
 from onboard.pipeline.coast import coast_estimate
@@ -263,6 +264,7 @@ class FramePipeline:
         #: per frame.
         self.withheld_because: tuple[str, ...] = ()
         self._was_withheld = False
+        self._last_p_cam_ned_m: np.ndarray | None = None  # the newest frame's camera, for a frame without a pose
         ec = config.estimator
         # a pose whose position is dead-reckoned beyond the camera-position noise the window assumes coasts
         self._camera_sigma_m = max(float(ec.camera_position_white_sigma_m), CAMERA_SIGMA_FLOOR_M)
@@ -756,6 +758,16 @@ class FramePipeline:
         du, dv = upd.u_px - uv[0], upd.v_px - uv[1]
         return float((du * du + dv * dv) / s2)
 
+    def _across_range_widened(self, p_ned_m: np.ndarray, cov_p_ned_m2) -> np.ndarray:
+        """An unobservable position's covariance as published: widened across the line of sight from the newest
+        camera position for the range it does not know (:func:`~onboard.estimation.map_estimator.across_range_widened`)."""
+        cam = self._last_p_cam_ned_m
+        if cam is None:
+            return np.asarray(cov_p_ned_m2, dtype=float)
+        los = p_ned_m - np.asarray(cam, dtype=float)
+        rng = float(np.linalg.norm(los))
+        return across_range_widened(cov_p_ned_m2, los / rng, rng) if rng > 0 else np.asarray(cov_p_ned_m2, dtype=float)
+
     def _track(self, frame: IrFrame, upd, state: str, pose: PoseAt | None, est) -> Track:
         withheld = bool(self.withheld_because)
         if withheld != self._was_withheld:
@@ -772,6 +784,8 @@ class FramePipeline:
             residual = self._residual_rms_norm(upd, pose, est, frame.time_boot_us)
             est = None
         origin = self._origin(pose)
+        if pose is not None:
+            self._last_p_cam_ned_m = pose.p_cam_ned_m
         base = dict(
             vehicle=self.vehicle,
             seq=frame.seq,
@@ -814,7 +828,7 @@ class FramePipeline:
                 alt_m=float(alt),
                 p_ned_m=(p_n, p_e, p_d),
                 v_ned_mps=est.v_ned_mps,
-                cov_p_ned_m2=est.cov_p_ned_m2,
+                cov_p_ned_m2=est.cov_p_ned_m2 if est.observable else self._across_range_widened(p, est.cov_p_ned_m2),
                 cov_v_ned_m2ps2=cov_v if cov_v is not None and np.all(np.isfinite(cov_v)) else None,
                 range_m=float(est.range_m),
                 range_sigma_ratio=None if ratio is None or math.isnan(ratio) else float(ratio),

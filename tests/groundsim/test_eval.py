@@ -358,6 +358,18 @@ def test_gnss_dropout_figures_count_the_window_frames():
     assert [line.split()[:3] for line in text.splitlines()[2:]] == [["A", "RTK", "s0"], ["A", "exact", "s0"]]
 
 
+@pytest.mark.parametrize("err_m, beyond_trace, beyond_ellipsoid", [(1.0, 0.0, 0.0), (3.9, 0.0, 1.0), (400.0, 1.0, 1.0)])
+def test_the_ellipsoid_figure_sees_an_error_across_a_covariance_the_trace_test_passes(
+    err_m, beyond_trace, beyond_ellipsoid
+):
+    """cov = diag(100^2, 1, 1) m^2: 3 sqrt(trace) = 300 m; an error of 3.9 m along the tight axis is 3.9 sigma there
+    (NEES 15.2 > 14.16): inside the trace's test, beyond the ellipsoid."""
+    r = _synthetic_run("A", 0, err_m=(0.0, err_m, 0.0))
+    cov = np.where(np.isfinite(r.est_cov_ned_m2), np.diag([100.0**2, 1.0, 1.0]), np.nan)
+    f = closed_loop_figures(dataclasses.replace(r, est_cov_ned_m2=cov))
+    assert f["beyond_3sigma_published"] == beyond_trace and f["beyond_3sigma_ellipsoid_published"] == beyond_ellipsoid
+
+
 @pytest.mark.parametrize("err_m, beyond", [(7.0, 1.0), (5.9, 0.0)])
 def test_the_honesty_figures_hold_the_error_to_three_square_roots_of_the_trace(err_m, beyond):
     """cov = 4/3 I: trace 4 m^2, 3 sigma (trace) = 3 sqrt(4) = 6 m; an error of 7 m is beyond it, 5.9 m inside

@@ -221,6 +221,29 @@ def test_unobservable_estimate_is_published_graded_unless_configured_off():
     assert all(j[k] is None for k in POSITION_KEYS) and j["observable"] is False and j["window_frames"] == 3
 
 
+def test_an_unobservable_position_is_published_widened_across_its_line_of_sight_an_observable_one_as_solved():
+    """The across-range covariance of an unobservable solution is its bearing's at its own range: published, it is
+    widened by 1 + sigma_r^2 / r^2 (:func:`~onboard.estimation.map_estimator.across_range_widened`), from the
+    frame's camera; an observable one goes out exactly as the estimator gave it."""
+    for observable in (True, False):
+        rig = Rig(ready_after=1, observable=observable)
+        tr = rig.run(3)[-1]
+        ts = (rig.scene.t_us(2) - rig.scene.boot_us0) / 1e6
+        p = rig.scene.target(ts)[0]
+        P = np.diag([4.0, 9.0, 1.0])  # the fake's
+        if observable:
+            np.testing.assert_array_equal(tr.cov_p_ned_m2, P)
+            continue
+        los = p - rig.scene.camera(ts)[0]
+        r = np.linalg.norm(los)
+        u = los / r
+        Q = np.eye(3) - np.outer(u, u)
+        W = np.asarray(tr.cov_p_ned_m2)
+        assert u @ W @ u == pytest.approx(u @ P @ u, rel=1e-9)
+        np.testing.assert_allclose(Q @ W @ Q, (1.0 + (u @ P @ u) / r**2) * (Q @ P @ Q), rtol=1e-9, atol=1e-12)
+        assert not np.allclose(W, P)
+
+
 def test_the_pose_origin_names_the_estimate_whatever_origin_was_configured():
     """The estimate is in the NED frame of the poses it was made from: a configured origin 111 m north of it (a
     replay's --set pose.origin) must neither move the published target nor name the track's frame."""

@@ -24,6 +24,7 @@ from onboard.core.track import (
     track_to_bytes,
     track_to_json,
 )
+from onboard.estimation.map_estimator import across_range_widened
 from onboard.io.mavlink_wire import geo_status_fields
 from onboard.pipeline.frame_pipeline import FramePipeline, make_tracker
 from tests.fakes import idle_status, positioned_track
@@ -102,10 +103,18 @@ def test_positions_are_published_when_finite_with_observable_false():
     last = tracks[-1]
     assert last.has_position and not last.observable and last.los is not None
     j = track_to_json(last)
-    assert j["ned_m"] is not None and j["sigma_ned_m"] == [2.0, 3.0, 1.0] and j["observable"] is False
+    # the fake's diag(4, 9, 1), widened across the line of sight for the range it does not know
+    ts = (rig.scene.t_us(3) - rig.scene.boot_us0) / 1e6
+    los = np.asarray(j["ned_m"]) - rig.scene.camera(ts)[0]
+    r = float(np.linalg.norm(los))
+    C = across_range_widened(np.diag([4.0, 9.0, 1.0]), los / r, r)
+    assert j["ned_m"] is not None and j["observable"] is False
+    np.testing.assert_allclose(j["sigma_ned_m"], np.sqrt(np.diag(C)), rtol=1e-6)
     assert geo_status_fields(last) is None  # #276: not for an unobservable position
     f = geo_status_fields(last, observable_only=False)
-    assert f["h_acc_m"] == pytest.approx(math.sqrt(4 + 9)) and f["v_acc_m"] == pytest.approx(1.0)
+    assert f["h_acc_m"] == pytest.approx(math.sqrt(C[0, 0] + C[1, 1])) and f["v_acc_m"] == pytest.approx(
+        math.sqrt(C[2, 2])
+    )
     assert f["dist_m"] == pytest.approx(j["range_m"])
 
 
