@@ -34,8 +34,8 @@ no output key could carry it), ``not_json``, ``bad_track`` (the schema's reader 
 altitude outside ``ORIGIN_ALT_RANGE_M`` too), ``too_many_vehicles``,
 ``bad_time_unix_us``, ``no_origin``, ``stale`` / ``future`` (common time more than ``--max-age-s`` before or
 after this machine's clock), ``camera_far`` / ``camera_jump`` (a camera no vehicle of the fleet can be at:
-:class:`~onboard.io.fleet_wire.StreamCheck`), ``time_sigma`` (``time_unix_sigma_us`` above
-``--max-time-sigma-ms``), ``sigma_below_floor`` (a line-of-sight sigma below
+:class:`~onboard.io.fleet_wire.StreamCheck`), ``time_sigma`` (a time sigma above ``--max-time-sigma-ms``: the
+track's ``time_unix_sigma_us``, or what the clock check finds; the log line says which), ``sigma_below_floor`` (a line-of-sight sigma below
 :data:`~onboard.estimation.fleet.MIN_BEARING_SIGMA_RAD`), ``clock_off`` (a vehicle the clock check names, off the
 others by more than the pairing window: its rays could not pair and would move a target), ``ray_name_clash``
 (DEBUG: a vehicle name two vehicles share, below), ``ray_stale``, ``ray_out_of_order``, ``duplicate`` (a seq
@@ -278,7 +278,8 @@ class Fusion:
         return clashing
 
     def _clock_off(self, vehicle: str, now_unix_s: float) -> float | None:
-        """How far ``vehicle``'s UTC is off the others' (s) when the clock check names it: its rays are timed wrong
+        """How far ``vehicle``'s UTC is off the others' (s, positive: ahead; the whole disagreement, which with two
+        vehicles the median's deviations split between them) when the clock check names it: its rays are timed wrong
         by that much while their time sigma says a fraction of a millisecond.  Beyond the pairing window they could
         not pair: kept out.  Within it they paired at the wrong place, confidently (docs/fleet.md gives the
         figures): their time sigma is widened to the deviation instead of shutting the vehicle out, since the check
@@ -287,9 +288,7 @@ class Fusion:
         # the verdict moves with the check's 10 s window: judged again every CLOCK_RECHECK_S, not on every ray
         if not now_unix_s - self._clock_judged_at < CLOCK_RECHECK_S:
             self._clock_judged_at = now_unix_s
-            flagged = self.clock_check.inconsistent(now_unix_s)
-            devs = self.clock_check.deviations_s(now_unix_s) if flagged else {}
-            self._clock_far = {v: devs[v] for v in flagged}
+            self._clock_far = self.clock_check.errors_s(now_unix_s)
         return self._clock_far.get(vehicle)
 
     def receive(self, key: str, payload: bytes, arrival_unix_s: float) -> None:
@@ -350,14 +349,18 @@ class Fusion:
         # the fleet's frame is the first accepted ray's origin: a message refused below must not set it (a stray
         # origin far from the fleet would make every later camera 'far' for the life of the process)
         origin = self.origin if self.origin is not None else track.origin
-        time_sigma_s = 0.0
+        # the ray's time sigma and what it came from: a refusal names what happened, not a field never sent
+        time_sigma_s, why = 0.0, "its time_unix_sigma_us"
         if source == "vehicle" and track.time_unix_sigma_us is not None:
             time_sigma_s = track.time_unix_sigma_us / 1e6
         elif source == "remembered":  # an old offset: its drift since (past --max-time-sigma-ms, refused)
             time_sigma_s = self.clock.remembered_sigma_s(vehicle, track.time_boot_us)
+            why = "the drift of its boot clock since its last track with a time_unix_us"
         off = self._clock_off(vehicle, arrival_unix_s) if time_unix_us is not None else None
         if off is not None and abs(off) <= self.tracker.config.pair_max_dt_s:
-            time_sigma_s = max(time_sigma_s, abs(off))  # named, within the pairing window: as uncertain as it is off
+            if abs(off) > time_sigma_s:  # named, within the pairing window: as uncertain as it is off
+                time_sigma_s = abs(off)
+                why = f"the clock check finds its time_unix_us {off * 1e3:+.0f} ms off the other vehicles'"
             off = None
         try:
             ray = ray_from_track(TimedTrack(track, t_s, source, time_sigma_s), origin)
@@ -376,11 +379,15 @@ class Fusion:
             if implausible == "camera_far":
                 self._reanchor_if_alone(vehicle, track.origin, arrival_unix_s)
             return
-        if not self._ray_plausible(key, ray):
+        if not self._ray_plausible(key, ray, why):
             return
         if time_unix_us is not None:
             if off is not None:
-                self.counter.count("clock_off", f"{key}: its time_unix_us is {off:+.3f} s off the other vehicles'")
+                self.counter.count(
+                    "clock_off",
+                    f"{key}: the clock check finds its time_unix_us {off * 1e3:+.0f} ms off the other vehicles', "
+                    "beyond the pairing window",
+                )
                 if vehicle not in self._clock_refused:  # what it sent before it was judged goes too
                     self._clock_refused.add(vehicle)
                     self.tracker.withdraw(vehicle, "its clock is off")
@@ -478,11 +485,13 @@ class Fusion:
             self.clock.forget(v)
             self.forgotten.append(v)
 
-    def _ray_plausible(self, key: str, ray: Ray) -> bool:
+    def _ray_plausible(self, key: str, ray: Ray, time_sigma_why: str) -> bool:
+        """False (counted) for a ray the solve must not take; ``time_sigma_why``: what its time sigma came from."""
         if ray.time_sigma_s > self.max_time_sigma_s:
             self.counter.count(
                 "time_sigma",
-                f"{key}: time_unix_sigma_us {ray.time_sigma_s * 1e6:.0f} > {self.max_time_sigma_s * 1e6:.0f}",
+                f"{key}: a time sigma of {ray.time_sigma_s * 1e3:.1f} ms ({time_sigma_why}) > --max-time-sigma-ms "
+                f"{self.max_time_sigma_s * 1e3:g}",
             )
             return False
         if min(ray.sigma_az_rad, ray.sigma_el_rad) < MIN_BEARING_SIGMA_RAD:

@@ -313,7 +313,7 @@ class ClockConsistency:
     on the fusion's clock) and :meth:`deviations_s` (each judged vehicle's latency floor minus the median
     floor, s; a vehicle is judged once it has ``min_samples`` frames in the last ``window_s``).
     :meth:`inconsistent` names the vehicles off the others by more than ``tolerance_s`` (with two judged, the one
-    farther from the fusion's own clock)."""
+    farther from the fusion's own clock); :meth:`errors_s` says by how much each named one is off."""
 
     def __init__(self, window_s: float = 10.0, tolerance_s: float = 0.010, min_samples: int = 20) -> None:
         self.window_s = float(window_s)
@@ -361,6 +361,18 @@ class ClockConsistency:
             return {}
         med = float(np.median(list(floors.values())))
         return {v: f - med for v, f in floors.items()}
+
+    def errors_s(self, now_unix_s: float) -> dict[str, float]:
+        """How far the UTC of each vehicle :meth:`inconsistent` names is off the others', s: the median of the other
+        judged vehicles' floors minus its own (positive: its stamps say its frames were taken later than they were,
+        its clock is ahead).  Not :meth:`deviations_s`: with two judged the median is their midpoint, which splits
+        their disagreement between them, while the vehicle named is blamed for all of it."""
+        floors = self.floors_s(now_unix_s)
+        out = {}
+        for v in self.inconsistent(now_unix_s):
+            others = [f for o, f in floors.items() if o != v]
+            out[v] = float(np.median(others)) - floors[v]
+        return out
 
     def inconsistent(self, now_unix_s: float) -> list[str]:
         """The judged vehicles whose floor is more than ``tolerance_s`` off the median floor (three or more

@@ -1,0 +1,134 @@
+"""The fusion's clocks under a vehicle whose UTC is wrong: a constant error the clock check names, a step of its
+UTC offset, one glitched stamp.  Two or three synthetic vehicles on a fast crossing target (20 m/s across their
+lines of sight, where a timing error moves the fused point), driven through :class:`~onboard.app.fuse.Fusion`
+payload by payload, no sockets; every fused point is scored against the truth."""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from collections.abc import Callable
+
+import numpy as np
+import pytest
+
+from groundsim.evaluation.fleet_synth import SynthTarget, SynthVehicle, measure, track_payload
+from onboard.app.fuse import Fusion, build_parser, noise_models
+from onboard.core.counters import RejectCounter
+from onboard.core.frames import GeodeticOrigin
+from onboard.estimation.fleet import FleetConfig, Ray
+from onboard.estimation.fleet_tracker import FleetTracker
+from onboard.io.fleet_wire import CommonClock, fleet_track_key
+
+ORIGIN = GeodeticOrigin(32.0, 118.8, 20.0)
+T0_UNIX_S = 1_800_000_000.0
+FRAME_S = 1 / 30
+LATENCY_S = 0.005  # capture to arrival on the fusion's clock
+WHITE_RAD = 0.3e-3
+BIAS_PRIOR_RAD = math.radians(0.1)  # the fusion's default attitude-bias prior, and each vehicle's drawn bias
+NEES_MAX = 16.3  # chi-square(3) at 0.999
+UAV1 = SynthVehicle("uav1", (0.0, -145.0, -100.0), (3.0, 0.0, 0.0))
+UAV2 = SynthVehicle("uav2", (0.0, 145.0, -100.0), (3.0, 0.0, 0.0))
+UAV3 = SynthVehicle("uav3", (-200.0, 0.0, -120.0), (0.0, 8.0, 0.0))
+TARGET = SynthTarget((592.0, -20.0, -120.0), (0.0, 20.0, 0.0))
+
+#: changes one payload dict in place: (vehicle name, time since the start s, the dict)
+Change = Callable[[str, float, dict], None]
+
+
+def new_fusion(argv: tuple[str, ...] = (), **kw) -> Fusion:
+    """A fusion with the command line's defaults (``argv`` changes them)."""
+    args = build_parser().parse_args(list(argv))
+    return Fusion(
+        FleetTracker(FleetConfig(), noise_models(args), RejectCounter()),
+        CommonClock(),
+        max_time_sigma_s=args.max_time_sigma_ms / 1e3,
+        **kw,
+    )
+
+
+def biased(vehicle: SynthVehicle, rng) -> SynthVehicle:
+    """``vehicle`` with a constant attitude error drawn from the prior the fusion assumes."""
+    return SynthVehicle(
+        vehicle.name, vehicle.p0_ned_m, vehicle.v_ned_mps, (0.0, 0.0, 0.0), rng.normal(0, BIAS_PRIOR_RAD, 3)
+    )
+
+
+def fly(
+    fusion: Fusion, vehicles, t_range, rng, change: Change | None = None, judged: dict[str, float] | None = None
+) -> list[dict]:
+    """Every vehicle's track at each time of ``t_range`` (s after T0_UNIX_S), its ``time_unix_us`` the true capture
+    time unless ``change`` says otherwise; the fleet tracks published.  ``judged``: filled with the time each vehicle
+    was first named by the clock check (the status's ``clock_inconsistent``, looked at every 0.1 s)."""
+    out = []
+    for i, t in enumerate(t_range):
+        k = int(round(t / FRAME_S))
+        for v in vehicles:
+            obj = track_payload(
+                v.name,
+                k,
+                int(round((1.0 + t) * 1e6)),
+                measure(v, TARGET, t, rng, WHITE_RAD, BIAS_PRIOR_RAD),
+                ORIGIN,
+                time_unix_us=int(round((T0_UNIX_S + t) * 1e6)),
+            )
+            if change is not None:
+                change(v.name, t, obj)
+            fusion.receive(f"irtrack/{v.name}/track", json.dumps(obj).encode(), T0_UNIX_S + t + LATENCY_S)
+        out += [p for key, p in fusion.flush() if key == fleet_track_key()]
+        if judged is not None and i % 3 == 2:
+            for name in fusion.status(T0_UNIX_S + t + LATENCY_S)["clock_inconsistent"]:
+                judged.setdefault(name, t)
+    return out
+
+
+def nees(track: dict) -> float:
+    """The fused point's squared error in its own covariance (3 dof)."""
+    e = np.asarray(track["ned_m"]) - TARGET.p_ned_m(track["time_unix_us"] / 1e6 - T0_UNIX_S)
+    return float(e @ np.linalg.solve(np.asarray(track["cov_ned_m2"]), e))
+
+
+def seconds(start_s: float, end_s: float) -> np.ndarray:
+    return np.arange(round(start_s / FRAME_S), round(end_s / FRAME_S)) * FRAME_S
+
+
+def spy_rays(fusion: Fusion) -> list[Ray]:
+    """The rays the fusion hands its tracker from now on."""
+    seen: list[Ray] = []
+    add = fusion.tracker.add
+    fusion.tracker.add = lambda ray: seen.append(ray) or add(ray)  # type: ignore[method-assign]
+    return seen
+
+
+# --------------------------------------------------------------------------- a constant error, two vehicles
+
+
+@pytest.mark.parametrize("max_time_sigma_ms", [50.0, 200.0])
+def test_with_two_vehicles_the_one_named_carries_its_whole_error_in_its_time_sigma(max_time_sigma_ms, caplog):
+    """uav2's UTC 90 ms ahead, two vehicles: the check's deviations from their median are 45 ms each, and the named
+    vehicle's rays took 45 ms of time sigma: fused observable at NEES ~7 (1.2 without the error).  Its rays carry
+    the whole 90 ms now, refused beyond --max-time-sigma-ms with a message that says why (it cited a
+    time_unix_sigma_us the vehicle never sent)."""
+    rng = np.random.default_rng(7)
+    vehicles = [biased(v, rng) for v in (UAV1, UAV2)]
+    fusion = new_fusion(("--max-time-sigma-ms", f"{max_time_sigma_ms:g}"))
+
+    def ahead(name, t, obj):
+        if name == "uav2":
+            obj["time_unix_us"] += 90_000
+
+    fly(fusion, vehicles, seconds(0.0, 1.5), rng, ahead)
+    assert fusion.status(T0_UNIX_S + 1.5)["clock_inconsistent"] == ["uav2"]
+    seen = spy_rays(fusion)
+    with caplog.at_level(logging.WARNING):
+        out = fly(fusion, vehicles, seconds(1.5, 4.0), rng, ahead)
+    uav2 = [r.time_sigma_s for r in seen if r.vehicle == "uav2"]
+    if max_time_sigma_ms < 90.0:
+        assert not uav2 and fusion.counter["time_sigma"] >= 70
+        (line,) = [r.getMessage() for r in caplog.records if r.getMessage().startswith("time_sigma")]
+        assert "clock check" in line and "+90 ms" in line and "time_unix_sigma_us" not in line, line
+    else:
+        assert uav2 and min(uav2) >= 0.089
+    observable = [p for p in out if p["observable"]]
+    assert all(nees(p) < NEES_MAX for p in observable), max(map(nees, observable))
