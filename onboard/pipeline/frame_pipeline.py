@@ -309,6 +309,16 @@ class FramePipeline:
         """
         self._selections.append((request, on_done))
 
+    def _selects_the_followed_object(self, sel) -> bool:
+        """Whether a selection names the object the estimate follows: the objects chain's ids name objects (the
+        single chain starts a new track on any selection)."""
+        return (
+            self.config.imaging.chain == "objects"
+            and self._est_has_data
+            and sel.track_id is not None
+            and sel.track_id == self._est_track_id
+        )
+
     def _apply_selections(self, pixels, pose: dict | None = None):
         """Decide the queued requests on this frame; the frame's TrackUpdate when one selected a target.
         ``pose``: the frame's ``R_ned_from_cam`` (a function, as :meth:`process` passes it) and ``time_boot_us``,
@@ -343,7 +353,16 @@ class FramePipeline:
                         result = TrackResult(req.request_id, False, f"no {what} {where} px")
                     else:
                         upd = sel
-                        self._reset_estimator(f"operator selection ({req.kind})")
+                        if self._selects_the_followed_object(sel):
+                            # a click on the box the ground station draws is "yes, that one" (and a ground station
+                            # resends a command whose ACK it lost): the estimate already follows that object
+                            log.info(
+                                "operator selection (%s) of object %s, which the estimate follows: kept",
+                                req.kind,
+                                sel.track_id,
+                            )
+                        else:
+                            self._reset_estimator(f"operator selection ({req.kind})")
                         result = TrackResult(req.request_id, True, u_px=sel.u_px, v_px=sel.v_px)
             except InputError as exc:
                 result = TrackResult(req.request_id, False, f"frame refused: {exc}")

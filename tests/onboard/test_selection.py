@@ -200,6 +200,38 @@ def test_the_objects_chain_never_hands_the_estimate_to_another_object(chain, res
     assert est.resets == resets and tracks[-1].estimate_epoch == resets
 
 
+class _SelectableIdTracker(_IdSequenceTracker):
+    """:class:`_IdSequenceTracker` whose selections name object ``selected`` (a click on it)."""
+
+    def __init__(self, ids, selected: int) -> None:
+        super().__init__(ids)
+        self.selected = selected
+
+    def select_point(self, pixels, u_px, v_px, radius_px, **pose):
+        import itertools
+        from dataclasses import replace
+
+        self._ids = itertools.repeat(self.selected)  # the selected object is the primary from now on
+        return replace(self.update(pixels), track_id=self.selected)
+
+
+@pytest.mark.parametrize("selected, resets", [(7, 0), (9, 1)])
+def test_selecting_the_object_the_estimate_follows_keeps_the_estimate(selected, resets):
+    """With the objects chain, a click on the primary it already follows (the box QGC draws; or a command resent
+    because its ACK was lost) is accepted and keeps the 3-D estimate; a click on another object restarts it."""
+    cfg = build_config({"imaging": {"chain": "objects"}, "estimator": {"enabled": False}})
+    est = _CountingEstimator()
+    pipe = FramePipeline(cfg, _Pose(), _SelectableIdTracker([7] * 10, selected), est)
+    for k in range(5):
+        pipe.process(_ir(k))
+    results = []
+    pipe.request_selection(TrackRequest(1, "point", u_px=320.0, v_px=256.0, radius_px=20.0), results.append)
+    tr = pipe.process(_ir(5))
+    assert results[0].accepted and tr.track_id == selected
+    tracks = [tr] + [pipe.process(_ir(k)) for k in (6, 7)]
+    assert est.resets == resets and {t.estimate_epoch for t in tracks} == {resets}
+
+
 # --------------------------------------------------------------------------- service camera step
 
 
