@@ -43,6 +43,9 @@ leaves those rows out, as in ``groundsim eval``'s files).  ``DIR/seqmaps/irtrack
 (TrackEval's ``SEQMAP_FILE``, with ``GT_FOLDER=DIR``, ``SKIP_SPLIT_FOL=True``).  A run into a folder that holds a
 dataset replaces the sequences it makes again whole (their files of formats not asked for go too, as does
 ``coco.json`` when COCO is not asked for); it refuses a folder whose dataset has sequences it would not make.
+The earlier manifest, ``coco.json`` and seqmap go before the first sequence is written, and the new ones are
+written once every sequence is: a run stopped half way leaves no manifest (its one line names the sequences
+not finished), and the same command takes the folder again.
 
 The scene's other objects (a scenario with a ``scene``: ``groundsim.world.render.scene.ObjectLabel``), when
 their box is in the image (visible or behind a cloud): MOT id and COCO ``track_id`` = object id + 1 (the
@@ -700,12 +703,13 @@ def _manifest(scenarios, seeds, options: DatasetOptions, summaries: list[Sequenc
 
 class DatasetInterrupted(KeyboardInterrupt):
     """Ctrl-C during :func:`export_dataset`: ``summaries`` of the sequences written whole (job order),
-    ``planned`` the number asked for."""
+    ``planned`` the number asked for, ``unfinished`` the names of the others (job order)."""
 
-    def __init__(self, summaries: list, planned: int) -> None:
+    def __init__(self, summaries: list, planned: int, unfinished: tuple[str, ...] = ()) -> None:
         super().__init__(f"{len(summaries)} of {planned} sequences written")
         self.summaries = summaries
         self.planned = planned
+        self.unfinished = unfinished
 
 
 def _replaceable(out: Path, names: set[str]) -> None:
@@ -771,7 +775,9 @@ def export_dataset(
     jobs = [(sc, seed, out, options) for sc in scenarios for seed in seeds]
     from groundsim.world.nav_errors import run_nav_case
 
-    _replaceable(out, {sequence_name(sc.name, run_nav_case(sc, options.nav_noise).name, seed) for sc, seed, *_ in jobs})
+    names = [sequence_name(sc.name, run_nav_case(sc, options.nav_noise).name, seed) for sc, seed, *_ in jobs]
+    _replaceable(out, set(names))
+    _remove_index(out, options)
     total = sum(frame_count(options.duration_s or sc.duration_s, sc.frame_rate_hz) for sc, *_ in jobs)
     bar = None
     if progress:
@@ -781,30 +787,48 @@ def export_dataset(
     try:
         summaries = run_jobs(_job, jobs, min(workers, len(jobs)), None if bar is None else bar.update)
     except JobsInterrupted as exc:
-        raise DatasetInterrupted([r for r in exc.results if r is not None], len(jobs)) from None
+        unfinished = tuple(n for n, r in zip(names, exc.results) if r is None)
+        raise DatasetInterrupted([r for r in exc.results if r is not None], len(jobs), unfinished) from None
     finally:
         if bar is not None:
             bar.close()
     if "coco" in options.formats:
         desc = f"irtrack dataset: {', '.join(sc.name for sc in scenarios)}; seeds {seeds}"
-        (out / "coco.json").write_text(json.dumps(coco_document(summaries, desc), indent=1) + "\n", encoding="ascii")
-    elif (out / "coco.json").exists():  # an earlier run's, of frames this one replaced
-        (out / "coco.json").unlink()
+        _write_replacing(out / "coco.json", json.dumps(coco_document(summaries, desc), indent=1) + "\n")
+    if "mot" in options.formats:
+        (out / SEQMAP).parent.mkdir(exist_ok=True)
+        _write_replacing(out / SEQMAP, "name\n" + "".join(s.name + "\n" for s in summaries))
+    # last: a dataset with a manifest is a whole one
+    _write_replacing(
+        out / "manifest.json", json.dumps(_manifest(scenarios, seeds, options, summaries), indent=2) + "\n"
+    )
+    return summaries, time.perf_counter() - t0
+
+
+def _remove_index(out: Path, options: DatasetOptions) -> None:
+    """Before the first sequence is touched: the earlier dataset's manifest, coco.json and seqmap go.  They list
+    the frames of sequences this run replaces, and a run stopped half way would have left them describing folders
+    that no longer hold those frames (an interrupted run leaves no manifest: the one line says so)."""
+    if (out / "coco.json").exists() and "coco" not in options.formats:
         log.warning(
             "--out %s: the earlier dataset's coco.json removed (its frames are replaced; --format coco "
             "makes this run's)",
             out,
         )
-    seqmap = out / SEQMAP
-    if "mot" in options.formats:
-        seqmap.parent.mkdir(exist_ok=True)
-        seqmap.write_text("name\n" + "".join(s.name + "\n" for s in summaries), encoding="ascii")
-    else:
-        seqmap.unlink(missing_ok=True)
-    (out / "manifest.json").write_text(
-        json.dumps(_manifest(scenarios, seeds, options, summaries), indent=2) + "\n", encoding="ascii"
-    )
-    return summaries, time.perf_counter() - t0
+    for name in ("manifest.json", "coco.json", SEQMAP):
+        (out / name).unlink(missing_ok=True)
+    with contextlib.suppress(OSError):  # gone when empty, so that the folder is one of sequences alone again
+        (out / SEQMAP).parent.rmdir()
+
+
+def _write_replacing(path: Path, text: str) -> None:
+    """``text`` into a file beside ``path``, renamed over it once written: never a file cut short by a kill."""
+    tmp = path.with_name(f".{path.name}.partial")
+    try:
+        tmp.write_text(text, encoding="ascii")
+        tmp.replace(path)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 def cmd_dataset(args) -> int:
@@ -838,8 +862,13 @@ def cmd_dataset(args) -> int:
             )
         except DatasetInterrupted as exc:
             done = ", ".join(s.name for s in exc.summaries)
-            kept = f" in {args.out}: {done} (no manifest; the unfinished sequences are incomplete)" if done else ""
-            return print_interrupted(f"{len(exc.summaries)} of {exc.planned} sequences written{kept}")
+            kept = f"{len(exc.summaries)} of {exc.planned} sequences written in {args.out}{': ' + done if done else ''}"
+            if exc.unfinished:
+                kept += (
+                    f"; not finished: {', '.join(exc.unfinished)} (no manifest; their folders are incomplete or an "
+                    "earlier run's)"
+                )
+            return print_interrupted(kept)
         frames = sum(s.frames for s in summaries)
         for s in summaries:
             print(

@@ -482,3 +482,39 @@ def test_two_scenarios_of_one_name_are_refused_before_out_is_made(tmp_path, caps
     with pytest.raises(ConfigError, match="^--scenario: P1 given twice"):  # the library's callers too
         export_dataset([_scenario(), load_scenario(copy)], [0], out, DatasetOptions(duration_s=0.1), progress=False)
     assert not out.exists()
+
+
+def test_an_interrupted_run_into_a_dataset_leaves_no_index_of_frames_it_removed(tmp_path, monkeypatch, capsys):
+    """A dataset made again and interrupted mid-sequence: the earlier manifest, coco.json and seqmap listed frames
+    the sequence no longer held (its PNGs removed, gt.txt gone); they go before the first sequence is touched, the
+    interrupted line names the sequence left unfinished, and the same command takes the folder again."""
+    import cv2
+
+    args = ["dataset", "--seeds", "2", "--duration", "0.5", "--format", "mot", "coco", "--workers", "1"]
+    args += ["--no-progress", "--out", str(tmp_path)]
+    assert cli_main(args) == 0
+    assert (tmp_path / "manifest.json").is_file() and (tmp_path / "coco.json").is_file()
+    imwrite, written = cv2.imwrite, []
+
+    def interrupted_after_five_frames(*a, **k):
+        if len(written) == 5:
+            raise KeyboardInterrupt
+        written.append(a[0])
+        return imwrite(*a, **k)
+
+    monkeypatch.setattr(cv2, "imwrite", interrupted_after_five_frames)
+    capsys.readouterr()
+    assert cli_main(args) == 130
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1] == (
+        f"interrupted: 0 of 2 sequences written in {tmp_path}; not finished: P1-RTK-s0, P1-RTK-s1 (no manifest; "
+        "their folders are incomplete or an earlier run's)"
+    ), err
+    for index in ("manifest.json", "coco.json", "seqmaps"):
+        assert not (tmp_path / index).exists(), index
+    assert len(list((tmp_path / "P1-RTK-s0" / "img1").glob("*.png"))) == 5
+    monkeypatch.undo()
+    assert cli_main(args) == 0  # the same command again: a folder of sequences alone is the dataset's
+    manifest = json.loads((tmp_path / "manifest.json").read_text())
+    for seq in manifest["sequences"]:
+        assert len(list((tmp_path / seq["name"] / "img1").glob("*.png"))) == seq["frames"]
