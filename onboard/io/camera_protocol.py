@@ -50,7 +50,12 @@ What a ground station sees (MAVLink common.xml; QGroundControl's src/Camera disc
   hears both answers), and one already answered keeps its answer for a retransmission (below).  A tracking request that the
   pipeline does not answer within ``track_request_timeout_s`` (no frames) is TEMPORARILY_REJECTED, but
   a stop, which needs no frame: it is ACCEPTED then and carried out at the next frame.
-  A refusal is also sent as STATUSTEXT (severity WARNING) naming the reason, which QGC shows.
+  A refusal is also sent as STATUSTEXT (severity WARNING) naming the reason, which QGC shows.  A text longer
+  than one STATUSTEXT's 50 bytes goes in chunks (common.xml: one non-zero ``id`` for all, ``chunk_seq`` from 0;
+  every chunk but the last fills its 50 bytes, and the last one's NUL ends the text), which QGC joins
+  (``StatusTextHandler``); at most :data:`STATUSTEXT_MAX_CHUNKS`, a longer text cut and ending in "...".  A
+  text that would fill its last chunk gets a trailing space: an empty chunk would end it as well, but QGC shows
+  an empty chunk as a missing one (" ... ").
 * Refusals in the daemon's reject counter (:class:`~onboard.core.counters.RejectCounter`, the status's
   ``rejected``; logged at INFO, once per reason and log interval): every answer DENIED
   (``gcs_command_denied``), UNSUPPORTED (``gcs_command_unsupported``), FAILED (``gcs_command_failed``) or
@@ -201,7 +206,11 @@ TRACKING_FLAGS = (
     | CAMERA_CAP_FLAGS_HAS_TRACKING_RECTANGLE
     | CAMERA_CAP_FLAGS_HAS_TRACKING_GEO_STATUS
 )
+#: bytes of text in one STATUSTEXT
 STATUSTEXT_MAX_CHARS = 50
+#: a refusal's STATUSTEXT is sent in at most this many chunks (module docstring): 199 bytes of text, room for every
+#: reason of ours; a longer one (an exception's text) is cut
+STATUSTEXT_MAX_CHUNKS = 4
 #: the fastest a ground station may have #275 / #276 sent.  Each describes the newest track, which changes
 #: once per IR frame at most (thermal cores deliver 9 to 60 frames/s, most 25 or 30): a faster stream repeats
 #: the same track, and it shares a telemetry radio with the autopilot's.  SET_MESSAGE_INTERVAL has no upper
@@ -539,6 +548,7 @@ class CameraProtocol:
         #: (requester, command) -> the answer of its latest command, while a retransmission of it may come
         self._decided: OrderedDict[tuple[_Requester, int], _Decided] = OrderedDict()
         self._next_request_id = 1
+        self._statustext_id = 0
         self._was_tracking = False
 
     # ------------------------------------------------------------------ commands
@@ -946,13 +956,17 @@ class CameraProtocol:
 
     def _refuse(self, command: int, result: int, reason: str, to: _Requester) -> list[Outgoing]:
         self.last_refusal = f"command {command}: {reason}"
-        text = f"irtrack: {reason}"[:STATUSTEXT_MAX_CHARS]
-        return [
-            self._ack(command, result, to, reason=reason),
+        self._statustext_id = self._statustext_id % 0xFFFF + 1  # uint16, 0 = a text in one message
+        texts = [
             Outgoing(
-                "statustext", dict(severity=MAV_SEVERITY_WARNING, text=text.encode()), reply_to=to.ids, via=to.via
-            ),
+                "statustext",
+                dict(severity=MAV_SEVERITY_WARNING, text=chunk, id=text_id, chunk_seq=seq),
+                reply_to=to.ids,
+                via=to.via,
+            )
+            for chunk, text_id, seq in _statustext_chunks(f"irtrack: {reason}", self._statustext_id)
         ]
+        return [self._ack(command, result, to, reason=reason), *texts]
 
     def _count(self, key: str) -> None:
         self.counters[key] = self.counters.get(key, 0) + 1
@@ -973,6 +987,20 @@ class CameraProtocol:
             "last_refusal": self.last_refusal,
             "counters": dict(self.counters),
         }
+
+
+def _statustext_chunks(text: str, text_id: int) -> list[tuple[bytes, int, int]]:
+    """(text, id, chunk_seq) of each STATUSTEXT carrying ``text`` (UTF-8; module docstring): one with id 0 when it
+    fits, else chunks of :data:`STATUSTEXT_MAX_CHARS` bytes with ``text_id`` (not 0), the last one shorter."""
+    raw, n = text.encode(), STATUSTEXT_MAX_CHARS
+    if len(raw) <= n:
+        return [(raw, 0, 0)]
+    limit = STATUSTEXT_MAX_CHUNKS * n - 1  # the last chunk keeps a byte for the NUL that ends the text
+    if len(raw) > limit:
+        raw = raw[: limit - 3].decode(errors="ignore").encode() + b"..."  # not inside a character
+    if len(raw) % n == 0:
+        raw += b" "  # module docstring: a full last chunk has no NUL to end the text
+    return [(raw[i : i + n], text_id, seq) for seq, i in enumerate(range(0, len(raw), n))]
 
 
 def _next_due(due_s: float, every_s: float, now_s: float) -> float:

@@ -551,6 +551,61 @@ def test_refused_selection_is_failed_with_the_reason_in_statustext_and_status():
     assert "no warm object" in proto.status()["last_refusal"]
 
 
+def _reassemble(texts) -> bytes:
+    """STATUSTEXT chunks as common.xml has a receiver join them: by ``chunk_seq``, each chunk's text up to its first
+    NUL, the one with a NUL the last."""
+    joined = b""
+    for seq, f in enumerate(sorted(texts, key=lambda f: f["chunk_seq"])):
+        assert f["chunk_seq"] == seq
+        text = bytes(f["text"]).ljust(cp.STATUSTEXT_MAX_CHARS, b"\0")
+        joined += text.split(b"\0")[0]
+        if b"\0" in text:
+            return joined
+    raise AssertionError("no chunk says it is the last (none holds a NUL)")
+
+
+@pytest.mark.parametrize(
+    "reason",
+    [
+        "no confirmed object within 20 px of (306, 256) px",  # the audit's, cut at its pixel before
+        "x" * (2 * cp.STATUSTEXT_MAX_CHARS - len("irtrack: ")),  # a multiple of a chunk: one more to end it
+        "y" * (cp.STATUSTEXT_MAX_CHARS - len("irtrack: ") + 1),
+    ],
+)
+def test_a_long_refusal_is_sent_whole_in_statustext_chunks_with_a_nonzero_id(reason):
+    """common.xml STATUSTEXT: a non-zero ``id`` ties the chunks of one long text, ``chunk_seq`` numbers them, and a
+    NUL in the text marks the last (QGC joins them per component)."""
+    proto = _proto()
+    _, req = proto.handle(_cmd(cp.MAV_CMD_CAMERA_TRACK_POINT, 0.48, 0.5, 20 / W), 0.0, 0)
+    out = proto.complete(TrackResult(req.request_id, False, reason))
+    assert _names(out)[0] == "command_ack" and set(_names(out)[1:]) == {"statustext"}
+    chunks = [o.fields for o in out if o.msg == "statustext"]
+    assert len(chunks) >= 2 and len({c["id"] for c in chunks}) == 1 and chunks[0]["id"] != 0
+    assert all(len(c["text"]) <= cp.STATUSTEXT_MAX_CHARS for c in chunks)
+    assert _reassemble(chunks).decode().rstrip() == f"irtrack: {reason}"
+    # the next long text is another message: another id
+    _, req = proto.handle(_cmd(cp.MAV_CMD_CAMERA_TRACK_POINT, 0.48, 0.5, 20 / W), 1.0, 0)
+    again = [o.fields for o in proto.complete(TrackResult(req.request_id, False, reason)) if o.msg == "statustext"]
+    assert again[0]["id"] not in (0, chunks[0]["id"])
+
+
+def test_a_short_refusal_is_one_statustext_with_id_zero():
+    out, _ = _proto().handle(_cmd(cp.MAV_CMD_CAMERA_TRACK_POINT, 2.0), 0.0, 0)
+    (text,) = [o.fields for o in out if o.msg == "statustext"]
+    assert (text["id"], text["chunk_seq"]) == (0, 0) and text["text"].startswith(b"irtrack: point (2, 0)")
+
+
+def test_a_refusal_longer_than_the_chunks_allow_is_cut_and_says_so():
+    proto = _proto()
+    _, req = proto.handle(_cmd(cp.MAV_CMD_CAMERA_TRACK_POINT, 0.48, 0.5, 20 / W), 0.0, 0)
+    out = proto.complete(TrackResult(req.request_id, False, "frame refused: " + "z" * 1000))
+    chunks = [o.fields for o in out if o.msg == "statustext"]
+    assert len(chunks) == cp.STATUSTEXT_MAX_CHUNKS
+    text = _reassemble(chunks)
+    assert text.startswith(b"irtrack: frame refused: zzz") and text.endswith(b"...")
+    assert "z" * 1000 in proto.status()["last_refusal"]  # the status keeps it whole
+
+
 def test_a_request_nobody_decides_is_temporarily_rejected_after_the_timeout():
     proto = _proto(track_request_timeout_s=1.0)
     _, req = proto.handle(_cmd(cp.MAV_CMD_CAMERA_TRACK_POINT, 0.5, 0.5, 0.03), 10.0, 0)
