@@ -33,7 +33,8 @@ per ``--reject-log-interval-s`` per reason: ``bad_vehicle_name`` (a key chunk th
 no output key could carry it), ``not_json``, ``bad_track`` (the schema's reader names the key; an origin's
 altitude outside ``ORIGIN_ALT_RANGE_M`` too), ``too_many_vehicles``,
 ``bad_time_unix_us``, ``no_origin``, ``stale`` / ``future`` (common time more than ``--max-age-s`` before or
-after this machine's clock), ``camera_far`` / ``camera_jump`` (a camera no vehicle of the fleet can be at:
+after this machine's clock), ``stamp_jump`` (a stamp whose ``UTC - boot`` offset jumped from its vehicle's: held
+until the next stamps say glitch or step, :class:`~onboard.io.fleet_wire.CommonClock`), ``camera_far`` / ``camera_jump`` (a camera no vehicle of the fleet can be at:
 :class:`~onboard.io.fleet_wire.StreamCheck`), ``time_sigma`` (a time sigma above ``--max-time-sigma-ms``: the
 track's ``time_unix_sigma_us``, or what the clock check finds; the log line says which), ``sigma_below_floor`` (a line-of-sight sigma below
 :data:`~onboard.estimation.fleet.MIN_BEARING_SIGMA_RAD`), ``clock_off`` (a vehicle the clock check names, off the
@@ -42,8 +43,8 @@ others by more than the pairing window: its rays could not pair and would move a
 heard again: redelivered or replayed), ``inbox_full`` (a flood beyond ``INBOX_MAX``), ``receive_error`` (a message
 that failed in a way no check above names: counted, the loop goes on); ``no_line_of_sight`` (a track without a
 target), ``ray_of_ended_object`` (a late ray of an object its vehicle's track has left) and the tracker's events
-are counted at DEBUG level.  A frame refused as stale or future is no evidence about its vehicle's clock: the
-clock check (below) never sees it.  The status lists refusals under
+are counted at DEBUG level.  A frame refused as stale or future, or held as a stamp jump, is no evidence about its
+vehicle's clock: the clock check (below) never sees it.  The status lists refusals under
 ``rejected`` and events (:data:`EVENTS`) under ``events``.
 
 Name clash: when the tracks under one name interleave two streams (``seq`` / ``time_boot_us`` back and forth,
@@ -320,10 +321,12 @@ class Fusion:
             return
         if not self._heard(vehicle, arrival_unix_s):
             return
-        # every frame times the vehicle's clock, with a target or not; but not one stamp so far off that it is refused
-        # as stale or future below (one glitch set the vehicle's latency floor for the check's whole window): such
-        # stamps count from the second in a row, a clock that is off, which the check is there to name
-        if time_unix_us is not None:
+        reading = self.clock.place(vehicle, track.time_boot_us, time_unix_us, arrival_unix_s)
+        # every frame times the vehicle's clock, with a target or not; but not a stamp whose UTC - boot offset jumped
+        # from the vehicle's (a glitch, or the first of a step), which would set the vehicle's latency floor for the
+        # check's whole window, nor one so far off that it is refused as stale or future below: such stamps count
+        # from the second in a row, a clock that is off, which the check is there to name
+        if time_unix_us is not None and reading.held_jump_s is None:
             off_window = abs(time_unix_us / 1e6 - arrival_unix_s) > self.max_age_s
             run = self._off_window[vehicle] = self._off_window.get(vehicle, 0) + 1 if off_window else 0
             if run != 1:
@@ -336,15 +339,21 @@ class Fusion:
             else:
                 self.counter.count("no_origin", f"{key}: a line of sight without its origin cannot be placed")
             return
-        t_s, source = self.clock.time_s(vehicle, track.time_boot_us, time_unix_us, arrival_unix_s)
         # the instant its line of sight is of: the stamp minus the camera clock's compensated lateness (tens to
         # hundreds of ms, a ray that far off in time pairs with the others' at the wrong place)
-        t_s -= track.compensated_us * 1e-6
+        t_s, source = reading.t_s - track.compensated_us * 1e-6, reading.source
         if t_s < arrival_unix_s - self.max_age_s:
             self.counter.count("stale", f"{key}: frame {arrival_unix_s - t_s:.3f} s old ({source} time)")
             return
         if t_s > arrival_unix_s + self.max_age_s:
             self.counter.count("future", f"{key}: frame {t_s - arrival_unix_s:.3f} s ahead ({source} time)")
+            return
+        if reading.held_jump_s is not None:  # timed by a clock the vehicle may not have: a glitch timed it wrong
+            self.counter.count(
+                "stamp_jump",
+                f"{key}: its time_unix_us puts UTC - boot {reading.held_jump_s * 1e3:+.1f} ms off the vehicle's "
+                "recent stamps: held out until its next stamps say whether its clock stepped",
+            )
             return
         # the fleet's frame is the first accepted ray's origin: a message refused below must not set it (a stray
         # origin far from the fleet would make every later camera 'far' for the life of the process)

@@ -19,7 +19,8 @@ camera position, null before it sent one; for a vehicle that did not contribute 
 can be older than the estimate).
 
 Time: every line of sight is put on one clock, UTC seconds (:class:`CommonClock`): the track's
-``time_unix_us`` when it carries one (``time_source: vehicle``), else its ``time_boot_us`` plus a
+``time_unix_us`` when it carries one (``time_source: vehicle``; a stamp whose ``UTC - boot`` offset jumps from the
+vehicle's is held back until the next stamps say whether it was a glitch or the vehicle's UTC stepped), else its ``time_boot_us`` plus a
 configured per-vehicle offset (``configured``), else plus the ``UTC - boot`` offset of the vehicle's latest
 stamped track (``remembered``: a daemon restarted on a running autopilot publishes its first seconds unstamped,
 on the same boot clock; the memory ends when the boot clock goes backwards, a reboot), else plus an offset
@@ -93,6 +94,7 @@ __all__ = [
     "vehicle_fleet_track_key",
     "vehicle_from_track_key",
     "ned_transform",
+    "ClockReading",
     "CommonClock",
     "ClockConsistency",
     "StreamCheck",
@@ -256,26 +258,76 @@ class StreamCheck:
 
 #: how fast an autopilot's boot clock may drift against UTC (a crystal's tolerance, with margin)
 CLOCK_DRIFT_PPM = 50.0
+#: a vehicle's ``UTC - boot`` offset that moves more than this (plus its drift) from one stamp to the next jumped: the
+#: daemon's UTC fit (:mod:`onboard.core.utc_clock`) moves it by well under a millisecond between frames
+STAMP_JUMP_S = 0.005
+#: stamps in a row that agree on a new offset before it is the vehicle's (its UTC stepped); fewer are a glitch
+STEP_STAMPS = 3
+
+
+@dataclass(frozen=True)
+class ClockReading:
+    """A frame placed on the common clock (:meth:`CommonClock.place`): ``t_s`` (UTC s) and its ``source``;
+    ``held_jump_s``: its stamp's ``UTC - boot`` offset minus the vehicle's, when that is a jump the clock holds back
+    (a glitch, or the first stamps of a step: which one, the next stamps say), else None; ``step_s``: the step of the
+    vehicle's offset this stamp confirmed (the new offset minus the old), else None."""
+
+    t_s: float
+    source: str
+    held_jump_s: float | None = None
+    step_s: float | None = None
 
 
 class CommonClock:
     """Puts each vehicle's frames on one clock, UTC seconds (module docstring, "Time").
 
     ``offsets_s``: configured ``UTC - boot`` offsets per vehicle, seconds.  ``window_s``: the arrival-time
-    estimate's memory."""
+    estimate's memory.  Step method :meth:`place`; :meth:`time_s` is its time and source alone.
+
+    A stamped track's ``UTC - boot`` offset is the vehicle's once it agrees with the one before (within
+    :data:`STAMP_JUMP_S` plus the boot clock's drift since): one stamp that jumps from it is held (not the vehicle's,
+    :attr:`ClockReading.held_jump_s`) until a stamp agrees with the vehicle's offset again (a glitch) or
+    :data:`STEP_STAMPS` newer stamps in a row agree with each other on the new one (the vehicle's UTC stepped,
+    :attr:`ClockReading.step_s`: the new offset is the vehicle's from then on)."""
 
     def __init__(self, offsets_s: Mapping[str, float] | None = None, window_s: float = 10.0) -> None:
         self.offsets_s = dict(offsets_s or {})
         self.window_s = float(window_s)
         self._arrivals: dict[str, deque[tuple[float, float]]] = {}
         self._last_boot_s: dict[str, float] = {}
-        # (UTC - boot, boot time) of each vehicle's latest stamped track
+        # (UTC - boot, boot time) of each vehicle's latest stamped track whose offset is the vehicle's
         self._stamped: dict[str, tuple[float, float]] = {}
+        # (UTC - boot, boot time, stamps in a row) of the newest held stamps that agree with each other
+        self._held: dict[str, tuple[float, float, int]] = {}
 
     def forget(self, vehicle: str) -> None:
         """Drop what is kept of ``vehicle``'s clock (a vehicle long silent; a configured offset stays)."""
-        for kept in (self._arrivals, self._last_boot_s, self._stamped):
+        for kept in (self._arrivals, self._last_boot_s, self._stamped, self._held):
             kept.pop(vehicle, None)
+
+    @staticmethod
+    def _agree(offset_s: float, kept: tuple[float, ...], boot_s: float) -> bool:
+        return abs(offset_s - kept[0]) <= STAMP_JUMP_S + abs(boot_s - kept[1]) * CLOCK_DRIFT_PPM * 1e-6
+
+    def _stamp(self, vehicle: str, offset_s: float, boot_s: float) -> tuple[float | None, float | None]:
+        """(held jump, confirmed step) of a stamp whose ``UTC - boot`` is ``offset_s`` (class docstring)."""
+        kept = self._stamped.get(vehicle)
+        if kept is None or self._agree(offset_s, kept, boot_s):
+            self._stamped[vehicle] = (offset_s, boot_s)
+            self._held.pop(vehicle, None)
+            return None, None
+        held = self._held.get(vehicle)
+        n = 1
+        if held is not None and self._agree(offset_s, held, boot_s):
+            if boot_s <= held[1]:  # a copy (or a late one) of a held message: not another stamp of the new offset
+                return offset_s - kept[0], None
+            n = held[2] + 1
+        if n >= STEP_STAMPS:
+            self._stamped[vehicle] = (offset_s, boot_s)
+            self._held.pop(vehicle, None)
+            return None, offset_s - kept[0]
+        self._held[vehicle] = (offset_s, boot_s, n)
+        return offset_s - kept[0], None
 
     def remembered_sigma_s(self, vehicle: str, time_boot_us: int) -> float:
         """The 1-sigma of a ``remembered`` time: the vehicle's boot clock drifts against UTC since its last stamped
@@ -286,24 +338,31 @@ class CommonClock:
     def time_s(
         self, vehicle: str, time_boot_us: int, time_unix_us: int | None, arrival_unix_s: float
     ) -> tuple[float, str]:
-        """(common time s, its source) of a frame of ``vehicle``."""
+        """(common time s, its source) of a frame of ``vehicle`` (:meth:`place`)."""
+        reading = self.place(vehicle, time_boot_us, time_unix_us, arrival_unix_s)
+        return reading.t_s, reading.source
+
+    def place(self, vehicle: str, time_boot_us: int, time_unix_us: int | None, arrival_unix_s: float) -> ClockReading:
+        """A frame of ``vehicle`` on the common clock, with what its stamp says of the vehicle's UTC (class
+        docstring)."""
         boot_s = time_boot_us / 1e6
         hist = self._arrivals.setdefault(vehicle, deque())
         if boot_s < self._last_boot_s.get(vehicle, -math.inf) - 1.0:  # the boot clock went back: a reboot
             hist.clear()
             self._stamped.pop(vehicle, None)
+            self._held.pop(vehicle, None)
         self._last_boot_s[vehicle] = boot_s
         if time_unix_us is not None:
-            self._stamped[vehicle] = (time_unix_us / 1e6 - boot_s, boot_s)
-            return time_unix_us / 1e6, "vehicle"
+            held_s, step_s = self._stamp(vehicle, time_unix_us / 1e6 - boot_s, boot_s)
+            return ClockReading(time_unix_us / 1e6, "vehicle", held_s, step_s)
         if vehicle in self.offsets_s:
-            return boot_s + self.offsets_s[vehicle], "configured"
+            return ClockReading(boot_s + self.offsets_s[vehicle], "configured")
         if vehicle in self._stamped:
-            return boot_s + self._stamped[vehicle][0], "remembered"
+            return ClockReading(boot_s + self._stamped[vehicle][0], "remembered")
         hist.append((arrival_unix_s, arrival_unix_s - boot_s))
         while hist and hist[0][0] < arrival_unix_s - self.window_s:
             hist.popleft()
-        return boot_s + min(o for _, o in hist), "arrival"
+        return ClockReading(boot_s + min(o for _, o in hist), "arrival")
 
 
 class ClockConsistency:

@@ -132,3 +132,53 @@ def test_with_two_vehicles_the_one_named_carries_its_whole_error_in_its_time_sig
         assert uav2 and min(uav2) >= 0.089
     observable = [p for p in out if p["observable"]]
     assert all(nees(p) < NEES_MAX for p in observable), max(map(nees, observable))
+
+
+# --------------------------------------------------------------------------- one stamp off
+
+
+@pytest.mark.parametrize("vehicles", [2, 3])
+def test_one_stamp_half_a_second_ahead_is_held_alone_and_does_not_shut_its_vehicle_out(vehicles):
+    """One uav2 frame stamped 0.5 s ahead, within --max-age-s: it reached the clock check and became uav2's latency
+    floor for the check's 10 s window; uav2 was named clock_inconsistent and its next 300 rays refused clock_off.
+    Its UTC - boot offset jumps from uav2's others: held (stamp_jump), and the next frame, back on uav2's offset, is
+    fused as before."""
+    rng = np.random.default_rng(7)
+    fleet = [biased(v, rng) for v in (UAV1, UAV2, UAV3)[:vehicles]]
+    fusion = new_fusion()
+    glitch_s = 3.0
+
+    def glitch(name, t, obj):
+        if name == "uav2" and abs(t - glitch_s) < FRAME_S / 2:
+            obj["time_unix_us"] += 500_000
+
+    judged: dict[str, float] = {}
+    out = fly(fusion, fleet, seconds(0.0, 6.0), rng, glitch, judged)
+    assert judged == {} and fusion.counter["clock_off"] == 0 and fusion.counter["stamp_jump"] == 1
+    t_of = [(p["time_unix_us"] / 1e6 - T0_UNIX_S, p) for p in out]
+    soon = [p for t, p in t_of if glitch_s < t <= glitch_s + 0.5 and p["observable"] and len(p["vehicles"]) == vehicles]
+    assert soon, "no observable fleet track of every vehicle within 0.5 s of the glitch"
+    observable = [p for p in out if p["observable"]]
+    assert all(nees(p) < NEES_MAX for p in observable), max(map(nees, observable))
+    assert fusion.counter["ray_out_of_order"] == 0  # the held ray was not fused 0.5 s ahead of uav2's next ones
+
+
+def test_the_common_clock_holds_a_jumped_stamp_until_the_next_ones_say_glitch_or_step():
+    clock = CommonClock()
+    utc_minus_boot_s = 1_700_000_000.0
+
+    def place(boot_s: float, error_s: float = 0.0):
+        return clock.place("uav1", int(boot_s * 1e6), int(round((boot_s + utc_minus_boot_s + error_s) * 1e6)), 0.0)
+
+    assert place(10.0).held_jump_s is None and place(10.1, 0.002).held_jump_s is None  # the fit moving a little
+    assert place(10.2, 0.5).held_jump_s == pytest.approx(0.498, abs=1e-5)  # from the newest of its offset
+    assert place(10.3).held_jump_s is None  # back on its offset: a glitch
+    # a step: held until STEP_STAMPS stamps in a row agree on the new offset (a copy of one is no second stamp)
+    assert place(11.0, -0.28).held_jump_s == pytest.approx(-0.28, abs=1e-5)
+    assert place(11.0, -0.28).held_jump_s is not None
+    assert place(11.1, -0.28).held_jump_s is not None
+    stepped = place(11.2, -0.28)
+    assert stepped.held_jump_s is None and stepped.step_s == pytest.approx(-0.28, abs=1e-5)
+    assert place(11.3, -0.28).step_s is None  # the vehicle's offset now
+    # an unstamped frame then takes the offset the vehicle has, not a held one
+    assert clock.time_s("uav1", 12_000_000, None, 0.0)[0] == pytest.approx(12.0 + utc_minus_boot_s - 0.28, abs=1e-5)
