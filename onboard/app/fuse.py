@@ -20,6 +20,9 @@ median, ms; ``latency_floor_ms``: the floors themselves) and ``clock_inconsisten
 ``--clock-tolerance-ms``: :class:`~onboard.io.fleet_wire.ClockConsistency`).  Counted on each change:
 ``vehicle_silent``, ``clock_inconsistent`` (WARNING, naming the vehicle), ``vehicle_back`` and, after
 ``FORGET_AFTER_S`` (10 min) of silence, ``vehicle_forgotten`` (INFO: out of the status and the per-vehicle outputs).
+``clock_step`` (WARNING): a vehicle's ``UTC - boot`` offset stepped (:class:`~onboard.io.fleet_wire.CommonClock`);
+the clock check starts judging it over from its new stamps, and until it has, its rays carry the step as their
+time sigma.
 A vehicle is one once a track of it parses; ``MAX_VEHICLES`` (64) are kept at most.  The zenoh options are :mod:`onboard.app.watch`'s (the daemon's names), and so is
 their default, which is not the daemon's: with none given it connects to ``tcp/127.0.0.1:7447``.
 
@@ -197,6 +200,7 @@ EVENTS = frozenset(
         "vehicle_forgotten",
         "fleet_origin_moved",
         "clock_inconsistent",
+        "clock_step",
         "name_clash",
         "name_clash_cleared",
         "target_created",
@@ -251,6 +255,7 @@ class Fusion:
         self._clock_refused: set[str] = set()
         self._clock_judged_at = -math.inf
         self._clock_far: dict[str, float] = {}
+        self._stepped: dict[str, float] = {}  # vehicles whose UTC stepped (s, signed) and not judged since
         # the fleet frame's provenance: the vehicle whose ray set it (None: configured, or none yet), and whether
         # another vehicle's ray was accepted in it since (then it is the fleet's, and kept)
         self._origin_vehicle: str | None = None
@@ -290,7 +295,26 @@ class Fusion:
         if not now_unix_s - self._clock_judged_at < CLOCK_RECHECK_S:
             self._clock_judged_at = now_unix_s
             self._clock_far = self.clock_check.errors_s(now_unix_s)
+            floors = self.clock_check.floors_s(now_unix_s)
+            if len(floors) >= 2:  # judged again since its step: the check's verdict stands for it now
+                for v in [v for v in self._stepped if v in floors]:
+                    del self._stepped[v]
         return self._clock_far.get(vehicle)
+
+    def _clock_stepped(self, key: str, vehicle: str, step_s: float) -> None:
+        """``vehicle``'s UTC offset stepped by ``step_s``: which offset is right, the old or the new, only the clock
+        check can say, from the new one's frames alone (the lowest arrival lag of the old ones would hide a step back
+        for the check's whole window).  Until it has judged them, the vehicle's rays are as uncertain in time as the
+        step."""
+        self.counter.count(
+            "clock_step",
+            f"{key}: its time_unix_us stepped by {step_s * 1e3:+.1f} ms against its time_boot_us; its lines of sight "
+            "carry that much time sigma until the clock check has judged its new UTC; check its UTC (SYSTEM_TIME)",
+        )
+        self.clock_check.forget(vehicle)
+        self._stepped[vehicle] = step_s
+        self._clock_far.pop(vehicle, None)
+        self._clock_judged_at = -math.inf
 
     def receive(self, key: str, payload: bytes, arrival_unix_s: float) -> None:
         vehicle = vehicle_from_track_key(key)
@@ -322,6 +346,8 @@ class Fusion:
         if not self._heard(vehicle, arrival_unix_s):
             return
         reading = self.clock.place(vehicle, track.time_boot_us, time_unix_us, arrival_unix_s)
+        if reading.step_s is not None:
+            self._clock_stepped(key, vehicle, reading.step_s)
         # every frame times the vehicle's clock, with a target or not; but not a stamp whose UTC - boot offset jumped
         # from the vehicle's (a glitch, or the first of a step), which would set the vehicle's latency floor for the
         # check's whole window, nor one so far off that it is refused as stale or future below: such stamps count
@@ -366,6 +392,10 @@ class Fusion:
             time_sigma_s = self.clock.remembered_sigma_s(vehicle, track.time_boot_us)
             why = "the drift of its boot clock since its last track with a time_unix_us"
         off = self._clock_off(vehicle, arrival_unix_s) if time_unix_us is not None else None
+        step = self._stepped.get(vehicle) if source == "vehicle" else None
+        if step is not None and abs(step) > time_sigma_s:
+            time_sigma_s = abs(step)
+            why = f"its UTC stepped by {step * 1e3:+.0f} ms and the clock check has not judged it since"
         if off is not None and abs(off) <= self.tracker.config.pair_max_dt_s:
             if abs(off) > time_sigma_s:  # named, within the pairing window: as uncertain as it is off
                 time_sigma_s = abs(off)
@@ -483,6 +513,7 @@ class Fusion:
                 self._objects,
                 self._far_since,
                 self._clock_far,
+                self._stepped,
                 self._off_window,
             ):
                 kept.pop(v, None)

@@ -41,7 +41,8 @@ from zero is named when they disagree by more than the tolerance, which takes th
 reference (a floor is small and positive on a clock that agrees with theirs: one machine, or GNSS/PTP-disciplined
 clocks; a fusion clock off by more than the vehicle's error can name the wrong one).  A vehicle whose floor
 genuinely differs (a slower computer, a longer radio hop) is named too: the status gives the floors and the
-deviations so an operator can tell.  Why not the geometry: 20 ms of a 20 m/s target is 0.4 m, 0.8 mrad
+deviations so an operator can tell.  A vehicle whose UTC stepped (:class:`CommonClock`) is forgotten and judged
+again from its new stamps: its old ones' floor would hide a step back (a higher floor) for the whole window.  Why not the geometry: 20 ms of a 20 m/s target is 0.4 m, 0.8 mrad
 at 500 m, no more than one ray's bearing noise, and as long as the target's angular rate is steady that
 error is a constant angle, which the solve's per-vehicle attitude-bias nuisance absorbs; it would take a
 manoeuvring target and many seconds, where the latency floor shows 20 ms within its first window.

@@ -182,3 +182,50 @@ def test_the_common_clock_holds_a_jumped_stamp_until_the_next_ones_say_glitch_or
     assert place(11.3, -0.28).step_s is None  # the vehicle's offset now
     # an unstamped frame then takes the offset the vehicle has, not a held one
     assert clock.time_s("uav1", 12_000_000, None, 0.0)[0] == pytest.approx(12.0 + utc_minus_boot_s - 0.28, abs=1e-5)
+
+
+# --------------------------------------------------------------------------- a step of a vehicle's UTC
+
+
+@pytest.mark.parametrize("vehicles", [2, 3])
+def test_a_clock_that_steps_back_is_named_within_a_second_and_never_fused_confidently(vehicles):
+    """uav2's time_unix_us steps back 280 ms at t = 4 s (its boot clock goes on): the check kept its lowest arrival
+    lag over 10 s, so the higher lags after the step were unseen until the window passed: 140 observable fleet tracks
+    in those 10 s, 11 m off at a 3.6 m sigma (NEES ~19), and the status said nothing until t = 14 s."""
+    rng = np.random.default_rng(7)
+    fleet = [biased(v, rng) for v in (UAV1, UAV2, UAV3)[:vehicles]]
+    fusion = new_fusion()
+    step_s = 4.0
+
+    def step_back(name, t, obj):
+        if name == "uav2" and t >= step_s - FRAME_S / 2:
+            obj["time_unix_us"] -= 280_000
+
+    judged: dict[str, float] = {}
+    out = fly(fusion, fleet, seconds(0.0, 8.0), rng, step_back, judged)
+    assert fusion.counter["clock_step"] == 1
+    assert set(judged) == {"uav2"} and judged["uav2"] - step_s <= 1.0, judged
+    late = [p for p in out if p["time_unix_us"] / 1e6 - T0_UNIX_S > step_s + 0.1 and p["observable"]]
+    assert all(nees(p) < NEES_MAX for p in late), max(map(nees, late))
+    if vehicles == 3:  # the other two fuse on
+        assert late and all(sorted(c["vehicle"] for c in p["vehicles"]) == ["uav1", "uav3"] for p in late[-30:])
+
+
+def test_a_clock_that_steps_back_into_agreement_is_fused_again_within_a_second():
+    """uav2 280 ms ahead from the start (named, its rays refused clock_off), then its UTC steps to the truth: its old
+    frames' low latency floor held it named for the check's 10 s window; the step starts the check's judgement over."""
+    rng = np.random.default_rng(8)
+    fleet = [biased(v, rng) for v in (UAV1, UAV2)]
+    fusion = new_fusion()
+    fixed_s = 3.0
+
+    def ahead_then_right(name, t, obj):
+        if name == "uav2" and t < fixed_s - FRAME_S / 2:
+            obj["time_unix_us"] += 280_000
+
+    out = fly(fusion, fleet, seconds(0.0, 5.0), rng, ahead_then_right)
+    assert fusion.counter["clock_off"] > 0 and fusion.counter["clock_step"] == 1
+    fused = [p for p in out if p["observable"] and p["time_unix_us"] / 1e6 - T0_UNIX_S > fixed_s]
+    assert fused and min(p["time_unix_us"] / 1e6 - T0_UNIX_S for p in fused) < fixed_s + 1.0
+    assert fusion.status(T0_UNIX_S + 5.0)["clock_inconsistent"] == []
+    assert all(nees(p) < NEES_MAX for p in fused), max(map(nees, fused))
