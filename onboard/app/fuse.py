@@ -45,8 +45,10 @@ others by more than the pairing window: its rays could not pair and would move a
 (DEBUG: a vehicle name two vehicles share, below), ``ray_stale``, ``ray_out_of_order``, ``duplicate`` (a seq
 heard again: redelivered or replayed), ``inbox_full`` (a flood beyond ``INBOX_MAX``), ``receive_error`` (a message
 that failed in a way no check above names: counted, the loop goes on); ``no_line_of_sight`` (a track without a
-target), ``ray_of_ended_object`` (a late ray of an object its vehicle's track has left) and the tracker's events
-are counted at DEBUG level.  A frame refused as stale or future, or held as a stamp jump, is no evidence about its
+target), ``ray_not_measured`` (a line of sight whose track says ``measurement_valid`` false: a coasting tracker's
+prediction, not a measurement; a track without the key is read as false, as the schema's reader does),
+``ray_of_ended_object`` (a late ray of an object its vehicle's track has left) and the tracker's events are counted
+at DEBUG level.  A frame refused as stale or future, or held as a stamp jump, is no evidence about its
 vehicle's clock: the clock check (below) never sees it.  The status lists refusals under
 ``rejected`` and events (:data:`EVENTS`) under ``events``.
 
@@ -358,10 +360,16 @@ class Fusion:
             if run != 1:
                 self.clock_check.add(vehicle, time_unix_us / 1e6, arrival_unix_s)
         los = track.los
-        if los is None or track.origin is None:
+        if los is None or track.origin is None or not track.measurement_valid:
             self.stream_check.add(vehicle, track.seq, track.time_boot_us, 0.0, None, arrival_unix_s)
             if los is None:
                 self.counter.count("no_line_of_sight", key, level=logging.DEBUG)
+            elif not track.measurement_valid:
+                # a coasting tracker's line of sight is to where it predicts the object, not where it saw it: fused,
+                # it holds the target to that prediction while it manoeuvres
+                self.counter.count(
+                    "ray_not_measured", f"{key}: {track.state}, measurement_valid false", level=logging.DEBUG
+                )
             else:
                 self.counter.count("no_origin", f"{key}: a line of sight without its origin cannot be placed")
             return
