@@ -21,7 +21,7 @@ from groundsim.evaluation.out_dir import make_out_dir, refuse_foreign_out
 from groundsim.evaluation.parallel import limit_blas_threads, pool_workers, quiet_run_logs
 from groundsim.evaluation.report import SCHEMA, holds_eval_report
 from groundsim.evaluation.scoring import format_gnss_dropout
-from groundsim.io.stop_signals import finish_despite_signals, print_interrupted
+from groundsim.io.stop_signals import finish_despite_signals, print_interrupted, sigterm_as_ctrl_c
 from groundsim.world.nav_errors import InjectedErrors
 from groundsim.world.scenario import DEFAULT_NAV_NOISE, refuse_duplicate_scenarios
 from onboard.core.errors import ConfigError
@@ -119,14 +119,14 @@ def cmd_eval(args) -> int:
     """The ``eval`` command: run, write the report, print the table and the report's path.
 
     Exit codes: 0; :data:`EXIT_FAILED` when every run failed (the report holds their errors); the command
-    line's EXIT_ERROR for bad input (a ConfigError); EXIT_INTERRUPTED after Ctrl-C.  Once the runs are done,
-    Ctrl-C (or SIGTERM) no longer stops the writing: the finished work is written, then the interrupted line
-    says where."""
+    line's EXIT_ERROR for bad input (a ConfigError); EXIT_INTERRUPTED after Ctrl-C or SIGTERM during the runs.
+    Once the runs are done, Ctrl-C (or SIGTERM) no longer stops the writing: the finished work is written, then
+    (after Ctrl-C) the interrupted line says where."""
     from groundsim.world.scenario import load_scenario, resolve_scenario_path
     from groundsim.world.sim import check_duration_s
 
     limit_blas_threads(1)
-    with quiet_run_logs():  # per-track chatter would drown the progress bar
+    with quiet_run_logs(), sigterm_as_ctrl_c():  # per-track chatter would drown the progress bar
         names = [n for group in (args.scenario or [list(DEFAULT_EVAL_SCENARIOS)]) for n in group]
         paths = [resolve_scenario_path(n) for n in names]
         scenarios = [load_scenario(p) for p in paths]

@@ -69,6 +69,7 @@ import json
 import logging
 import math
 import os
+import signal
 import sys
 import time
 from collections.abc import Iterable
@@ -101,7 +102,7 @@ from groundsim.evaluation.parallel import (
     quiet_run_logs,
     start_pool,
 )
-from groundsim.io.stop_signals import finish_despite_signals
+from groundsim.io.stop_signals import finish_despite_signals, sigterm_as_ctrl_c
 from groundsim.world.noise_cases import NoiseCase, load_noise_cases
 from groundsim.world.scenario import Scenario, load_scenario
 from onboard.core.errors import ConfigError
@@ -875,8 +876,9 @@ def run_campaign(
             files.update(write_report(out, spec, rows, dataclasses.asdict(result)))  # the report states these counts
         except OSError as exc:
             raise ConfigError(f"{out}: cannot write the table or the report: {exc}") from None
-    # a signal while writing stops the command as one during the runs would (the interrupted line, its exit code)
-    return dataclasses.replace(result, files=files, interrupted=interrupted or bool(received))
+    # a Ctrl-C while writing ends the command as one during the runs would (the interrupted line, its exit code);
+    # a SIGTERM then, as in eval, only waited for the writing: every run is done and written
+    return dataclasses.replace(result, files=files, interrupted=interrupted or signal.SIGINT in received)
 
 
 # --------------------------------------------------------------------------- command line
@@ -901,10 +903,11 @@ def _all_failed(name: str, table_path) -> int:
 
 
 def cmd_campaign(args) -> int:
-    """``groundsim campaign SPEC``: validate, run what is missing, write table + report, print the summary."""
+    """``groundsim campaign SPEC``: validate, run what is missing, write table + report, print the summary.
+    Ctrl-C or SIGTERM: the runs done are kept and in the table, the interrupted line, exit 130."""
     from groundsim.evaluation.eval import DEFAULT_ONBOARD_CONFIG, load_base_config
 
-    with quiet_run_logs("groundsim.evaluation.eval"):
+    with quiet_run_logs("groundsim.evaluation.eval"), sigterm_as_ctrl_c():
         spec = load_spec(args.spec)
         scheduler = getattr(args, "scheduler", None)
         if scheduler is not None and args.workers is not None:

@@ -100,7 +100,7 @@ from groundsim.evaluation.parallel import (
     report_progress,
     run_jobs,
 )
-from groundsim.io.stop_signals import print_interrupted
+from groundsim.io.stop_signals import print_interrupted, sigterm_as_ctrl_c
 from onboard.core.errors import ConfigError, InputError
 
 __all__ = [
@@ -832,10 +832,11 @@ def _write_replacing(path: Path, text: str) -> None:
 
 
 def cmd_dataset(args) -> int:
-    """The ``dataset`` command: export, print one line per sequence and the frames/s."""
+    """The ``dataset`` command: export, print one line per sequence and the frames/s.  Ctrl-C or SIGTERM: the
+    interrupted line names the sequences written and those not finished, exit 130."""
     from groundsim.world.scenario import load_scenario, refuse_duplicate_scenarios, resolve_scenario_path
 
-    with quiet_run_logs("groundsim.world.truth"):
+    with quiet_run_logs("groundsim.world.truth"), sigterm_as_ctrl_c():
         names = [n for group in (args.scenario or [["P1"]]) for n in group]
         paths = [resolve_scenario_path(n) for n in names]
         scenarios = [load_scenario(p) for p in paths]

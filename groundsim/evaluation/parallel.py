@@ -2,7 +2,8 @@
 
 A pool's workers come from a fork server (:func:`mp_context`) and run :func:`init_worker` first: one BLAS
 thread (:func:`limit_blas_threads`), one OpenCV thread, SIGINT ignored (Ctrl-C is the parent's: it
-terminates the pool, so no worker prints a KeyboardInterrupt traceback), and the progress queue.  A job
+terminates the pool, so no worker prints a KeyboardInterrupt traceback), an end when the command that made the
+pool ends, however it ends (:func:`end_with_owner`), and the progress queue.  A job
 reports the frames it has done with :func:`report_progress`, in a worker or in the parent alike.
 :func:`run_jobs` runs jobs in this process (one worker) or on a pool; interrupted, it raises
 :class:`JobsInterrupted` carrying the results of the jobs that finished.
@@ -19,6 +20,7 @@ __all__ = [
     "pool_workers",
     "mp_context",
     "init_worker",
+    "end_with_owner",
     "limit_blas_threads",
     "report_progress",
     "run_jobs",
@@ -94,13 +96,16 @@ def mp_context(preload: tuple[str, ...] = DEFAULT_PRELOAD):
     return ctx
 
 
-def init_worker(queue=None, ready=None) -> None:
-    """A pool worker's set-up: SIGINT ignored, one BLAS and one OpenCV thread, progress to ``queue``; a 0 to
-    ``ready`` (or ``queue``) once started."""
+def init_worker(queue=None, ready=None, owner_pid: int | None = None) -> None:
+    """A pool worker's set-up: SIGINT ignored, ended with the process that made the pool (``owner_pid``:
+    :func:`end_with_owner`), one BLAS and one OpenCV thread, progress to ``queue``; a 0 to ``ready`` (or
+    ``queue``) once started."""
     import signal
 
     global _progress
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's: it terminates the pool
+    if owner_pid is not None:
+        end_with_owner(owner_pid)
     limit_blas_threads(1)
     try:
         import cv2
@@ -112,6 +117,35 @@ def init_worker(queue=None, ready=None) -> None:
     started = queue if ready is None else ready
     if started is not None:
         started.put(0)  # started: no frames done yet (start_pool waits for this from every worker)
+
+
+def end_with_owner(owner_pid: int) -> bool:
+    """SIGTERM to this process when process ``owner_pid`` (the command that made the pool) exits, however it
+    ends; True when that is arranged (Linux 5.3 and later: a pidfd, waited on by a daemon thread).
+
+    A command killed outright (SIGKILL, an out-of-memory kill) terminates no pool, and its workers went on with
+    their jobs, orphans, for as long as the jobs ran.  A worker's parent is the fork server, not the command,
+    and the fork server ends only once every worker has (each holds its liveness pipe), so a signal on the
+    parent's death (``prctl(PR_SET_PDEATHSIG)``, :mod:`onboard.app.parent_watch`) would never come."""
+    import os
+    import select
+    import signal
+    import threading
+
+    try:
+        fd = os.pidfd_open(owner_pid)
+    except ProcessLookupError:  # gone already
+        os.kill(os.getpid(), signal.SIGTERM)
+        return True
+    except (AttributeError, OSError):  # no pidfd here: the pool's own terminate is the only end
+        return False
+
+    def wait_for_owner() -> None:
+        select.select([fd], [], [])  # a pidfd turns readable when its process exits
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    threading.Thread(target=wait_for_owner, name="end-with-owner", daemon=True).start()
+    return True
 
 
 def report_progress(n: int) -> None:
@@ -145,6 +179,7 @@ def start_pool(workers: int, preload: tuple[str, ...] = DEFAULT_PRELOAD, progres
     returns; ``queue`` carries what the jobs report with :func:`report_progress` (None without ``progress``:
     nothing is reported, so a caller that never drains a queue leaves none filling).  Ctrl-C during the start
     is held until the workers have started, then raised as KeyboardInterrupt, the pool terminated."""
+    import os
     import queue as queue_mod
     import signal
     import threading
@@ -159,14 +194,21 @@ def start_pool(workers: int, preload: tuple[str, ...] = DEFAULT_PRELOAD, progres
     # taken by any other thread that had it unblocked (BLAS, OpenCV, a progress bar's), and Python then raises
     # it in the main thread all the same.  signal.signal works in the main thread only; elsewhere the caller
     # owns Ctrl-C.
+    # SIGTERM is held the same way while a Python handler takes it (a command that stops on SIGTERM as on
+    # Ctrl-C, groundsim.io.stop_signals.sigterm_as_ctrl_c), then handed to that handler.
     held: list[int] = []
     main = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGINT, lambda signum, frame: held.append(signum)) if main else None
+    term = signal.getsignal(signal.SIGTERM) if main else None
+    if not callable(term):  # the default (the process ends) or ignored: left as it is
+        term = None
+    if term is not None:
+        signal.signal(signal.SIGTERM, lambda signum, frame: held.append(signum))
     try:
         try:
             ready = ctx.Queue()
             q = ready if progress else None
-            pool = ctx.Pool(workers, initializer=init_worker, initargs=(q, ready))
+            pool = ctx.Pool(workers, initializer=init_worker, initargs=(q, ready, os.getpid()))
             t_end = time.monotonic() + POOL_START_TIMEOUT_S
             started = 0
             while started < workers and time.monotonic() < t_end:
@@ -177,8 +219,12 @@ def start_pool(workers: int, preload: tuple[str, ...] = DEFAULT_PRELOAD, progres
         finally:
             if main:  # None: a handler installed outside Python; Python's own is the nearest honest one
                 signal.signal(signal.SIGINT, previous if previous is not None else signal.default_int_handler)
-        if held:
+            if term is not None:
+                signal.signal(signal.SIGTERM, term)
+        if signal.SIGINT in held:
             raise KeyboardInterrupt
+        if signal.SIGTERM in held:
+            signal.raise_signal(signal.SIGTERM)  # to its handler, now back
     except BaseException:
         if pool is not None:
             pool.terminate()

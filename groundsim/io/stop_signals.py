@@ -5,8 +5,9 @@ checks, instead of raising wherever the loop happens to be; when SIGINT ended it
 :func:`print_interrupted`'s line, ``interrupted: <what was kept>``, and exits :data:`EXIT_INTERRUPTED`.
 
 The evaluation's commands (eval, dataset, campaign) stop by KeyboardInterrupt instead: their work is in pools
-and generators that Ctrl-C unwinds.  :func:`finish_despite_signals` holds SIGINT and SIGTERM while the work that
-is done is written.
+and generators that Ctrl-C unwinds.  :func:`sigterm_as_ctrl_c` makes SIGTERM (a service manager's stop, ``kill``,
+a CI job's time limit) take that path too, and :func:`finish_despite_signals` holds both signals while the work
+that is done is written.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ __all__ = [
     "install_stop_signals",
     "print_interrupted",
     "finish_despite_signals",
+    "sigterm_as_ctrl_c",
 ]
 
 log = logging.getLogger(__name__)
@@ -80,3 +82,20 @@ def finish_despite_signals(what: str = "the report") -> Iterator[list[int]]:
         yield received
     finally:
         restore()
+
+
+@contextlib.contextmanager
+def sigterm_as_ctrl_c() -> Iterator[None]:
+    """While the block runs, SIGTERM raises KeyboardInterrupt, as Ctrl-C does: a command that stops cleanly on
+    Ctrl-C (its pool ended, the finished work kept, the interrupted line) stops so on SIGTERM too, where Python's
+    default would end the process at once (its pool's workers left running, the files of the work done so far not
+    written).  Outside the main thread (embedded use) nothing changes: the caller owns stopping."""
+    try:
+        old = signal.signal(signal.SIGTERM, signal.default_int_handler)
+    except ValueError:
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)

@@ -4,6 +4,9 @@ cut them short, and SIGTERM stops it as Ctrl-C does (the finished runs in the ta
 from __future__ import annotations
 
 import signal
+import subprocess
+import time
+from pathlib import Path
 
 import pandas as pd
 import pytest
@@ -11,8 +14,14 @@ import pytest
 from groundsim.app.cli import main as cli_main
 from groundsim.evaluation.campaign import LOG_NAME, read_log
 from groundsim.evaluation.campaign_report import REPORT_NAME, TABLE_NAME
+from tests.groundsim.campaign_helpers import campaign_cmd
+from tests.process_helpers import descendants, kill_all, wait_gone
 
+REPO = Path(__file__).resolve().parents[2]
 EXIT_INTERRUPTED = 130
+FIRST_ROW_TIMEOUT_S = 120.0  # hang guard: the first case's rows (imports and a pool's start on a busy machine)
+EXIT_TIMEOUT_S = 60.0
+GONE_TIMEOUT_S = 2.0  # the pool's processes after the command's exit
 # two cases of two algorithms, in this process: the first case's rows are logged before the first Ctrl-C
 SPEC = "scenarios: [P1]\nnoise: [RTK]\nalgorithms: [paper, rpekf]\nseeds: 2\nduration_s: 0.5\n"
 
@@ -93,3 +102,37 @@ def test_a_write_stopped_half_way_leaves_the_earlier_file_whole(tmp_path, monkey
             report.write_report(out, spec, [], info)
     monkeypatch.undo()
     assert (out / name).read_text() == "the earlier one\n"
+
+
+@pytest.mark.integration
+@pytest.mark.multicore
+def test_sigterm_stops_a_campaign_as_ctrl_c_does(tmp_path):
+    """SIGTERM to the command alone once a run is logged: the pool ended, the table of every logged run, the
+    interrupted line; it had ended at once (exit -15, no line, a leaked-semaphore warning, the table and report
+    of an earlier invocation left beside a longer log)."""
+    out = tmp_path / "out"
+    cmd = campaign_cmd(REPO / "config/campaigns/example.yaml", out, "--workers", "2", "--fresh")
+    err_path = tmp_path / "stderr.txt"
+    with open(err_path, "w") as err:  # a file, not a pipe: no wait on what the workers hold open
+        proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL, stderr=err)
+    pool: set[int] = set()
+    try:
+        t_end = time.monotonic() + FIRST_ROW_TIMEOUT_S
+        while time.monotonic() < t_end and proc.poll() is None:
+            pool |= descendants(proc.pid)
+            if (out / LOG_NAME).is_file() and read_log(out / LOG_NAME)[0]:
+                break
+            time.sleep(0.05)
+        assert proc.poll() is None, "the campaign ended before a run was logged"
+        proc.send_signal(signal.SIGTERM)
+        rc = proc.wait(EXIT_TIMEOUT_S)
+        assert not wait_gone(pool, GONE_TIMEOUT_S), "the pool outlived the campaign"
+        stderr = err_path.read_text()
+        assert rc == EXIT_INTERRUPTED, stderr[-3000:]
+        logged = len(read_log(out / LOG_NAME)[0])
+        lines = [line for line in stderr.splitlines() if line.startswith("interrupted:")]
+        assert lines == [f"interrupted: {logged} of 72 runs done; the same command resumes"], stderr[-3000:]
+        assert len(pd.read_csv(out / TABLE_NAME)) == logged and (out / REPORT_NAME).is_file()
+        assert "Traceback" not in stderr and "leaked semaphore" not in stderr, stderr[-3000:]
+    finally:
+        kill_all([proc.pid, *pool])

@@ -1,9 +1,14 @@
-"""Ctrl-C in the long commands (real processes, SIGINT as a terminal sends it): one line "interrupted: <what
-was kept>", exit code 130, no traceback from the pool's workers, no worker left behind."""
+"""Ctrl-C in the long commands (real processes, SIGINT as a terminal sends it; SIGTERM as a service manager or
+``kill`` sends it): one line "interrupted: <what was kept>", exit code 130, no traceback from the pool's workers,
+no worker left behind, even when the command alone was killed outright."""
 
 from __future__ import annotations
 
+import signal
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 import pytest
 
@@ -13,6 +18,7 @@ EXIT_INTERRUPTED = 130
 READY_TIMEOUT_S = 60.0  # the command's first log line (imports on a busy machine)
 EXIT_TIMEOUT_S = 60.0  # from SIGINT to exit
 GONE_TIMEOUT_S = 10.0  # the workers' exit after the parent's
+ORPHAN_GONE_S = 2.0  # a pool's processes after their command was signalled alone and exited (or was killed)
 EVAL_ARGS = ("eval", "--scenario", "P1", "P2", "--seeds", "3", "--workers", "2", "--no-batch", "--no-progress")
 
 
@@ -31,14 +37,16 @@ def _wait_for_pool(cmd: WatchedCommand, workers: set[int], at_least: int, poll_s
         time.sleep(poll_s)
 
 
-def _interrupt(cmd: WatchedCommand) -> tuple[int, str, str]:
+def _interrupt(cmd: WatchedCommand, signum: int = signal.SIGINT) -> tuple[int, str, str]:
     """SIGINT to the command alone (as the terminal sends it to the foreground group, whose pool workers
-    ignore it); returns (exit code, stdout, stderr)."""
-    return cmd.interrupt(group=False, exit_timeout_s=EXIT_TIMEOUT_S)
+    ignore it), or ``signum``; returns (exit code, stdout, stderr)."""
+    return cmd.interrupt(group=False, exit_timeout_s=EXIT_TIMEOUT_S, signum=signum)
 
 
 @pytest.mark.integration
-def test_ctrl_c_in_eval_keeps_the_finished_runs_and_exits_130(tmp_path):
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["sigint", "sigterm"])
+def test_ctrl_c_or_sigterm_in_eval_keeps_the_finished_runs_and_exits_130(tmp_path, signum):
+    """SIGTERM had ended eval at once (exit -15, no line, the finished runs' report not written)."""
     out = tmp_path / "eval"
     cmd = _groundsim(*EVAL_ARGS, "--out", str(out))
     workers: set[int] = set()
@@ -46,7 +54,7 @@ def test_ctrl_c_in_eval_keeps_the_finished_runs_and_exits_130(tmp_path):
         _wait_for_pool(cmd, workers, 2, poll_s=0.1)  # the fork server and its two workers
         time.sleep(2.0)  # the workers are flying and rendering
         workers |= descendants(cmd.proc.pid)
-        rc, stdout, stderr = _interrupt(cmd)
+        rc, stdout, stderr = _interrupt(cmd, signum)
         assert rc == EXIT_INTERRUPTED, stderr[-3000:]
         lines = [line for line in stderr.splitlines() if line.startswith("interrupted:")]
         assert len(lines) == 1 and " of 6 runs done; " in lines[0], stderr[-3000:]
@@ -113,3 +121,37 @@ def test_the_interrupted_line_names_the_recording_where_it_went(capsys):
     report = SimpleNamespace(frames=10, frames_total=30, record_files=("r-2.mcap",))
     assert _run_interrupted([signal_module.SIGINT], config, report) == 130
     assert capsys.readouterr().err == "interrupted: 10 of 30 frames sent; recording in r-2.mcap\n"
+
+
+@pytest.mark.integration
+@pytest.mark.multicore
+def test_sigterm_stops_a_dataset_as_ctrl_c_does_its_workers_too(tmp_path):
+    """SIGTERM to the dataset command alone (not its group) while its two workers render: it stops as on Ctrl-C
+    (one line, 130, its pool ended); it had ended at once, its workers rendering on into --out, then printing
+    BrokenPipeError tracebacks."""
+    out = tmp_path / "ds"
+    err_path = tmp_path / "stderr.txt"
+    args = ["dataset", "--seeds", "2", "--duration", "20", "--workers", "2", "--no-progress", "--out", str(out)]
+    with open(err_path, "w") as err:  # a file, not a pipe: no wait on what the workers hold open
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "groundsim", *args], cwd=Path(__file__).resolve().parents[2], stderr=err
+        )
+    pool: set[int] = set()
+    try:
+        t_end = time.monotonic() + READY_TIMEOUT_S
+        while len({p.parents[1] for p in out.glob("*/img1/*.png")}) < 2 and time.monotonic() < t_end:
+            pool |= descendants(proc.pid)  # both workers are rendering once both sequences have frames
+            time.sleep(0.1)
+        pool |= descendants(proc.pid)
+        assert proc.poll() is None and len(pool) >= 3, err_path.read_text()[-3000:]  # fork server, 2 workers
+        proc.send_signal(signal.SIGTERM)
+        rc = proc.wait(EXIT_TIMEOUT_S)
+        left = wait_gone(pool, ORPHAN_GONE_S)
+        assert not left, f"alive {ORPHAN_GONE_S} s after the command exited: {left}"
+        stderr = err_path.read_text()
+        assert rc == EXIT_INTERRUPTED, stderr[-3000:]
+        lines = [line for line in stderr.splitlines() if line.startswith("interrupted:")]
+        assert len(lines) == 1 and " of 2 sequences written in " in lines[0], stderr[-3000:]
+        assert "Traceback" not in stderr, stderr[-3000:]
+    finally:
+        kill_all([proc.pid, *pool])

@@ -87,3 +87,42 @@ def test_pool_workers_is_the_option_else_two_at_most(monkeypatch):
         assert pool_workers(None) == expected
     with pytest.raises(ConfigError, match=r"^--workers: expected an integer >= 1, got 0$"):
         pool_workers(0)
+
+
+# a process that starts a pool of two workers on an hour's job each, says so, and waits
+_POOL_OWNER = """
+import time
+from groundsim.evaluation.parallel import start_pool
+
+pool, _ = start_pool(2, preload=(), progress=False)
+for _ in range(2):
+    pool.apply_async(time.sleep, (3600,))
+print("started", flush=True)
+time.sleep(3600)
+"""
+POOL_GONE_S = 2.0  # a pool's workers after their command was killed outright
+
+
+@pytest.mark.integration
+@pytest.mark.multicore
+def test_pool_workers_end_with_a_command_killed_outright():
+    """SIGKILL (an out-of-memory kill, a CI job's hard limit) runs none of the command's clean-up: its workers had
+    gone on with their jobs, orphans, until those ended (a closed-loop campaign's case: minutes)."""
+    import signal
+    import subprocess
+    import sys
+
+    from tests.process_helpers import descendants, kill_all, repo_env, wait_gone
+
+    proc = subprocess.Popen([sys.executable, "-c", _POOL_OWNER], env=repo_env(), stdout=subprocess.PIPE, text=True)
+    pool: set[int] = set()
+    try:
+        assert proc.stdout is not None and proc.stdout.readline() == "started\n"
+        pool = descendants(proc.pid)
+        assert len(pool) >= 3, pool  # the fork server and its two workers
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(10)
+        left = wait_gone(pool, POOL_GONE_S)
+        assert not left, f"alive {POOL_GONE_S} s after their command was killed: {left}"
+    finally:
+        kill_all([proc.pid, *pool])
