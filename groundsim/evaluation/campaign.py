@@ -124,6 +124,7 @@ __all__ = [
     "cmd_campaign",
     "code_fingerprint",
     "check_workers",
+    "check_scheduler_address",
 ]
 
 log = logging.getLogger(__name__)
@@ -671,11 +672,33 @@ def _jobs(spec: CampaignSpec, runs: list[RunParams], base_config) -> list[Job]:
     return jobs
 
 
+def check_scheduler_address(scheduler: str) -> None:
+    """ConfigError naming ``--scheduler`` unless it is ``PROTOCOL://HOST:PORT`` with a port 1-65535 (an IPv6
+    host in brackets): dask reads a malformed one as an address it cannot reach, so the mistake surfaced as a
+    timeout after 20 s, as a traceback."""
+    from urllib.parse import urlsplit
+
+    try:
+        parts = urlsplit(scheduler)
+        port = parts.port
+    except ValueError as exc:  # a port that is not a number or beyond 65535, an unclosed IPv6 bracket
+        why = str(exc)
+    else:
+        checks = (
+            ("://" in scheduler, "no protocol"),
+            (bool(parts.hostname), "no host"),
+            (port is not None and 1 <= port <= 65535, "no port in 1-65535"),
+            (not (parts.path or parts.query or parts.fragment), "more after the port"),
+        )
+        why = next((w for ok, w in checks if not ok), "")
+    if why:
+        raise ConfigError(f"--scheduler: expected an address tcp://HOST:PORT, got {scheduler!r} ({why})")
+
+
 def _cluster_client(scheduler: str):
     """A ``distributed.Client`` on ``scheduler`` (``tcp://HOST:PORT``); ConfigError naming ``--scheduler``
     when dask is missing, the address is malformed or nothing answers there."""
-    if "://" not in scheduler:
-        raise ConfigError(f"--scheduler: expected an address tcp://HOST:PORT, got {scheduler!r}")
+    check_scheduler_address(scheduler)
     try:
         from distributed import Client
     except ImportError:
@@ -910,6 +933,8 @@ def cmd_campaign(args) -> int:
     with quiet_run_logs("groundsim.evaluation.eval"), sigterm_as_ctrl_c():
         spec = load_spec(args.spec)
         scheduler = getattr(args, "scheduler", None)
+        if scheduler is not None:  # before --out is made
+            check_scheduler_address(scheduler)
         if scheduler is not None and args.workers is not None:
             raise ConfigError(
                 f"--workers: not with --scheduler (the cluster's workers run the jobs), got --workers {args.workers}"

@@ -88,6 +88,20 @@ def test_cli_workers_below_one_is_refused(tmp_path, capsys, workers):
     assert not out.exists()
 
 
+@pytest.mark.parametrize(
+    "address",
+    ["tcp://127.0.0.1:notaport", "tcp://[::1", "tcp://127.0.0.1:0", "tcp://127.0.0.1:70000", "tcp://:8786", "tcp://h"],
+)
+def test_cli_a_malformed_scheduler_address_is_one_line_before_anything(tmp_path, capsys, address):
+    """A port that is not one, an unclosed IPv6 bracket: a traceback, a 20 s wait and exit 1 had followed."""
+    out = tmp_path / "out"
+    argv = ["campaign", str(_spec_file(tmp_path)), "--out", str(out), "--scheduler", address, "--no-progress"]
+    assert cli_main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("groundsim campaign: error: --scheduler: expected an address"), err
+    assert address in err[0] and not out.exists()
+
+
 # --------------------------------------------------------------------------- a damaged log on resume
 
 
