@@ -31,26 +31,26 @@ every ray, then solves each touched target that is due once and publishes: due w
 frame of the newest camera period is in, or a vehicle is ``max_defer_s`` (50 ms) late on the fleet clock
 (:meth:`~onboard.estimation.fleet_tracker.FleetTracker.due`), or the queue has been idle for 0.1 s.  Eight vehicles
 at 30 Hz then cost one solve per period instead of about two, at no latency from the later frame.
-Bad input never stops it and never becomes a fused point: it is counted by reason and logged at most once
-per ``--reject-log-interval-s`` per reason: ``bad_vehicle_name`` (a key chunk that is no daemon's vehicle name:
-no output key could carry it), ``not_json``, ``bad_track`` (the schema's reader names the key; an origin's
-altitude outside ``ORIGIN_ALT_RANGE_M`` too), ``too_many_vehicles``,
-``bad_time_unix_us``, ``no_origin``, ``stale`` / ``future`` (common time more than ``--max-age-s`` before or
-after this machine's clock), ``stamp_jump`` (a stamp whose ``UTC - boot`` offset jumped from its vehicle's: held
-until the next stamps say glitch or step, :class:`~onboard.io.fleet_wire.CommonClock`), ``camera_far`` / ``camera_jump`` (a camera no vehicle of the fleet can be at:
-:class:`~onboard.io.fleet_wire.StreamCheck`), ``time_sigma`` (a time sigma above ``--max-time-sigma-ms``: the
-track's ``time_unix_sigma_us``, or what the clock check finds; the log line says which), ``sigma_below_floor`` (a line-of-sight sigma below
-:data:`~onboard.estimation.fleet.MIN_BEARING_SIGMA_RAD`), ``clock_off`` (a vehicle the clock check names, off the
-others by more than the pairing window: its rays could not pair and would move a target), ``ray_name_clash``
-(DEBUG: a vehicle name two vehicles share, below), ``ray_stale``, ``ray_out_of_order``, ``duplicate`` (a seq
-heard again: redelivered or replayed), ``inbox_full`` (a flood beyond ``INBOX_MAX``), ``receive_error`` (a message
-that failed in a way no check above names: counted, the loop goes on); ``no_line_of_sight`` (a track without a
-target), ``ray_not_measured`` (a line of sight whose track says ``measurement_valid`` false: a coasting tracker's
-prediction, not a measurement; a track without the key is read as false, as the schema's reader does),
-``ray_of_ended_object`` (a late ray of an object its vehicle's track has left) and the tracker's events are counted
-at DEBUG level.  A frame refused as stale or future, or held as a stamp jump, is no evidence about its
-vehicle's clock: the clock check (below) never sees it.  The status lists refusals under
-``rejected`` and events (:data:`EVENTS`) under ``events``.
+Bad input never stops it and never becomes a fused point: it is counted by reason and logged at most once per
+``--reject-log-interval-s`` per reason: ``bad_vehicle_name`` (a key chunk that is no daemon's vehicle name: no
+output key could carry it), ``not_json``, ``bad_track`` (the schema's reader names the key; an origin's altitude
+outside ``ORIGIN_ALT_RANGE_M`` too), ``too_many_vehicles``, ``bad_time_unix_us``, ``no_origin``, ``stale`` /
+``future`` (common time more than ``--max-age-s`` before or after this machine's clock), ``stamp_jump`` (a stamp
+whose ``UTC - boot`` offset jumped from its vehicle's: held until the next stamps say glitch or step,
+:class:`~onboard.io.fleet_wire.CommonClock`), ``camera_far`` / ``camera_jump`` (a camera no vehicle of the fleet can
+be at: :class:`~onboard.io.fleet_wire.StreamCheck`), ``time_sigma`` (a time sigma above ``--max-time-sigma-ms``: the
+track's ``time_unix_sigma_us``, or what the clock check finds; the log line says which), ``sigma_below_floor`` (a
+line-of-sight sigma below :data:`~onboard.estimation.fleet.MIN_BEARING_SIGMA_RAD`), ``clock_off`` (a vehicle the
+clock check names, off the others by more than the pairing window: its rays could not pair and would move a target),
+``ray_name_clash`` (DEBUG: a vehicle name two vehicles share, below), ``ray_stale``, ``ray_out_of_order`` (a ray not
+newer than its object's last, among them a message the link reordered), ``duplicate`` (a seq heard again:
+redelivered or replayed), ``inbox_full`` (a flood beyond ``INBOX_MAX``), ``receive_error`` (a message that failed in
+a way no check above names: counted, the loop goes on); ``no_line_of_sight`` (a track without a target),
+``ray_not_measured`` (a line of sight whose track says ``measurement_valid`` false: a coasting tracker's prediction,
+not a measurement; a track without the key is read as false, as the schema's reader does), ``ray_of_ended_object``
+(a late ray of an object its vehicle's track has left) and the tracker's events are counted at DEBUG level.  A frame
+refused as stale or future, or held as a stamp jump, is no evidence about its vehicle's clock: the clock check
+(below) never sees it.  The status lists refusals under ``rejected`` and events (:data:`EVENTS`) under ``events``.
 
 Name clash: when the tracks under one name interleave two streams (``seq`` / ``time_boot_us`` back and forth,
 the camera jumping farther than a vehicle flies: :class:`~onboard.io.fleet_wire.StreamCheck`), ``name_clash`` is

@@ -18,34 +18,33 @@ time_source}``; the per-vehicle key adds ``vehicle`` (the addressee) and ``range
 camera position, null before it sent one; for a vehicle that did not contribute to this target that position
 can be older than the estimate).
 
-Time: every line of sight is put on one clock, UTC seconds (:class:`CommonClock`): the track's
-``time_unix_us`` when it carries one (``time_source: vehicle``; a stamp whose ``UTC - boot`` offset jumps from the
-vehicle's is held back until the next stamps say whether it was a glitch or the vehicle's UTC stepped), else its ``time_boot_us`` plus a
-configured per-vehicle offset (``configured``), else plus the ``UTC - boot`` offset of the vehicle's latest
-stamped track (``remembered``: a daemon restarted on a running autopilot publishes its first seconds unstamped,
-on the same boot clock; the memory ends when the boot clock goes backwards, a reboot), else plus an offset
-estimated from arrival times, the
-minimum of ``arrival - time_boot`` over the last ``window_s`` (``arrival``: the fusion's clock, biased by the
-vehicle's shortest capture-to-arrival latency, typically a few ms on one machine; it drifts with the
+Time: every line of sight is put on one clock, UTC seconds (:class:`CommonClock`): the track's ``time_unix_us`` when
+it carries one (``time_source: vehicle``; a stamp whose ``UTC - boot`` offset jumps from the vehicle's is held back
+until the next stamps say whether it was a glitch or the vehicle's UTC stepped), else its ``time_boot_us`` plus a
+configured per-vehicle offset (``configured``), else plus the ``UTC - boot`` offset of the vehicle's latest stamped
+track (``remembered``: a daemon restarted on a running autopilot publishes its first seconds unstamped, on the same
+boot clock; the memory ends when the boot clock goes backwards, a reboot), else plus an offset estimated from
+arrival times, the minimum of ``arrival - time_boot`` over the last ``window_s`` (``arrival``: the fusion's clock,
+biased by the vehicle's shortest capture-to-arrival latency, typically a few ms on one machine; it drifts with the
 vehicle's clock and resets when the boot clock goes backwards).
 
-Clock check (:class:`ClockConsistency`): a vehicle whose ``time_unix_us`` is off the others' (a wrong
-UTC mapping, an injected 20 ms) is found from arrival times.  For each vehicle the fusion keeps the
-shortest ``arrival - time_unix`` over ``window_s``: the floor of its capture-to-arrival latency.  Vehicles
-that run the same daemon over the same kind of link share that floor within a few ms (the processing's
-fastest frame plus the link's shortest delay), so a vehicle whose floor is ``tolerance_s`` (10 ms) off the
-median of the vehicles' floors is named: its clock says its frames were taken later (floor lower) or
-earlier (higher) than they were.  The fusion's own clock error is common to every vehicle and cancels.  With
-two vehicles the median is their midpoint and cannot say which is off: then the one whose floor is farther
-from zero is named when they disagree by more than the tolerance, which takes the fusion's clock as a third
-reference (a floor is small and positive on a clock that agrees with theirs: one machine, or GNSS/PTP-disciplined
-clocks; a fusion clock off by more than the vehicle's error can name the wrong one).  A vehicle whose floor
-genuinely differs (a slower computer, a longer radio hop) is named too: the status gives the floors and the
-deviations so an operator can tell.  A vehicle whose UTC stepped (:class:`CommonClock`) is forgotten and judged
-again from its new stamps: its old ones' floor would hide a step back (a higher floor) for the whole window.  Why not the geometry: 20 ms of a 20 m/s target is 0.4 m, 0.8 mrad
-at 500 m, no more than one ray's bearing noise, and as long as the target's angular rate is steady that
-error is a constant angle, which the solve's per-vehicle attitude-bias nuisance absorbs; it would take a
-manoeuvring target and many seconds, where the latency floor shows 20 ms within its first window.
+Clock check (:class:`ClockConsistency`): a vehicle whose ``time_unix_us`` is off the others' (a wrong UTC mapping,
+an injected 20 ms) is found from arrival times.  For each vehicle the fusion keeps the shortest ``arrival -
+time_unix`` over ``window_s``: the floor of its capture-to-arrival latency.  Vehicles that run the same daemon over
+the same kind of link share that floor within a few ms (the processing's fastest frame plus the link's shortest
+delay), so a vehicle whose floor is ``tolerance_s`` (10 ms) off the median of the vehicles' floors is named: its
+clock says its frames were taken later (floor lower) or earlier (higher) than they were.  The fusion's own clock
+error is common to every vehicle and cancels.  With two vehicles the median is their midpoint and cannot say which
+is off: then the one whose floor is farther from zero is named when they disagree by more than the tolerance, which
+takes the fusion's clock as a third reference (a floor is small and positive on a clock that agrees with theirs: one
+machine, or GNSS/PTP-disciplined clocks; a fusion clock off by more than the vehicle's error can name the wrong
+one).  A vehicle whose floor genuinely differs (a slower computer, a longer radio hop) is named too: the status
+gives the floors and the deviations so an operator can tell.  A vehicle whose UTC stepped (:class:`CommonClock`) is
+forgotten and judged again from its new stamps: its old ones' floor would hide a step back (a higher floor) for the
+whole window.  Why not the geometry: 20 ms of a 20 m/s target is 0.4 m, 0.8 mrad at 500 m, no more than one ray's
+bearing noise, and as long as the target's angular rate is steady that error is a constant angle, which the solve's
+per-vehicle attitude-bias nuisance absorbs; it would take a manoeuvring target and many seconds, where the latency
+floor shows 20 ms within its first window.
 
 A ray's time sigma: a stamped track's ``time_unix_sigma_us`` (the vehicle's UTC mapping) becomes the ray's
 ``time_sigma_s`` (:class:`~onboard.estimation.fleet.Ray`); a time from a configured, remembered or arrival offset
@@ -55,14 +54,16 @@ on one machine or a wired link (a constant lag, which the clock check reports; a
 in ``--clock-offset``).
 
 One vehicle per name (:class:`StreamCheck`): a daemon publishes one track per frame, its ``seq`` and
-``time_boot_us`` increasing and its camera moving no faster than an aircraft.  Two vehicles configured with the
-same name interleave two such streams on one key: ``seq`` or ``time_boot_us`` go back and forth, the camera jumps
+``time_boot_us`` increasing and its camera moving no faster than an aircraft.  Two vehicles configured with the same
+name interleave two such streams on one key: ``seq`` or ``time_boot_us`` go back and forth, the camera jumps
 hundreds of metres between consecutive tracks.  Each such step is an anomaly; ``clash_anomalies`` (4) within
 ``window_s`` (5 s) name the vehicle a name clash until ``clear_after_s`` (5 s) pass without one.  A daemon restart
-(``seq`` from 0) or a reboot (``time_boot_us`` from 0) is one anomaly; a new local origin two (the first track
-there is refused as a jump, the next one, consistent with it, is the stream's new place).  A single camera
-jump (a glitch, a track placed against another origin) is refused alone (``camera_jump``), and a camera farther
-than ``MAX_CAMERA_DISTANCE_M`` from the fleet's origin is refused outright (``camera_far``).
+(``seq`` from 0) or a reboot (``time_boot_us`` from 0) is one anomaly; a message the link delivered late, which
+falls between two of the stream's recent messages in both ``seq`` and ``time_boot_us``, is none (a reorder: the
+tracker refuses its ray, older than its object's newest, as ``ray_out_of_order``); a new local origin two (the first
+track there is refused as a jump, the next one, consistent with it, is the stream's new place).  A single camera
+jump (a glitch, a track placed against another origin) is refused alone (``camera_jump``), and a camera farther than
+``MAX_CAMERA_DISTANCE_M`` from the fleet's origin is refused outright (``camera_far``).
 
 Frames: each vehicle's ``camera_ned_m`` / ``los_ned`` are in its own local NED frame (its track's
 ``origin``); both are mapped into the fleet's frame (the first origin seen, or a configured one) by the exact
@@ -184,9 +185,11 @@ class StreamCheck:
     Step method :meth:`add` (one track's ``seq``, ``time_boot_us``, common time, camera in the fleet frame or
     None, arrival time on the fusion's clock) returns ``camera_far`` / ``camera_jump`` for a track whose camera
     is not believable (refuse its ray), ``duplicate`` for a message heard already (one of the stream's last
-    :data:`RECENT_MESSAGES`: a redelivery or a replay, refused without counting against the name), or None; :meth:`clashing` names the vehicles whose recent anomalies say
-    two vehicles share the name.  ``max_speed_mps``: the fastest vehicle, ``slack_m``: a navigation fix's jump
-    allowed on top of it."""
+    :data:`RECENT_MESSAGES`: a redelivery or a replay, refused without counting against the name), or None (also
+    for a late message that slots into the stream's recent ``seq`` and ``time_boot_us`` order: the link delivered it
+    after newer ones, no anomaly; the tracker refuses its ray as out of order); :meth:`clashing` names the vehicles
+    whose recent anomalies say two vehicles share the name.  ``max_speed_mps``: the fastest vehicle, ``slack_m``: a
+    navigation fix's jump allowed on top of it."""
 
     def __init__(
         self,
@@ -212,6 +215,20 @@ class StreamCheck:
         self._streams.pop(vehicle, None)
         self._clashing.discard(vehicle)
 
+    @staticmethod
+    def _slots_in(st: _Stream, seq: int, time_boot_us: int) -> bool:
+        """Whether a late ``(seq, time_boot_us)`` falls between two of the stream's recent messages in both orders:
+        one message of this stream the link delivered after newer ones.  A second vehicle's stream, on its own
+        ``seq`` count and boot clock, does not slot into the first's (nor does a message older than all those kept:
+        nothing says which stream it is of)."""
+        older = False
+        for i in range(len(st.seen)):
+            s_seen, b_seen = st.seen[i]
+            if s_seen == seq or b_seen == time_boot_us or (s_seen < seq) != (b_seen < time_boot_us):
+                return False
+            older = older or s_seen < seq
+        return older
+
     def add(
         self, vehicle: str, seq: int, time_boot_us: int, t_s: float, p_cam_ned_m, arrival_unix_s: float
     ) -> str | None:
@@ -227,8 +244,16 @@ class StreamCheck:
             return None
         if (seq, time_boot_us) in st.seen:
             return "duplicate"
+        late = seq <= st.seq or time_boot_us < st.boot_us
+        if (
+            late
+            and self._slots_in(st, seq, time_boot_us)
+            and (p is None or st.anchor is None or self._near(st.anchor, t_s, p))
+        ):
+            st.seen.add((seq, time_boot_us))
+            return None
         st.seen.add((seq, time_boot_us))
-        anomaly = seq <= st.seq or time_boot_us < st.boot_us
+        anomaly = late
         st.seq, st.boot_us = seq, time_boot_us
         verdict = None
         if p is not None:

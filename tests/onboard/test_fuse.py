@@ -820,6 +820,29 @@ def test_a_message_heard_twice_or_replayed_is_a_duplicate_not_a_second_vehicle()
     assert sorted(c["vehicle"] for c in last["vehicles"]) == ["uav1", "uav2"]
 
 
+def test_a_link_that_reorders_messages_is_not_two_vehicles_under_one_name():
+    """uav2's link swaps two adjacent messages every 0.5 s: each late one stepped seq and time_boot_us back, an
+    anomaly, and four in 5 s named a name clash and withdrew uav2.  A late message that slots into its stream's recent
+    seq and time_boot_us order is a reorder: its ray refused as out of order, nothing counted against the name."""
+    fusion, rng, out, held = new_fusion(), np.random.default_rng(6), [], None
+    for k, t in enumerate(np.arange(0.0, 6.0, 1 / 30)):
+        for v in (UAV1, UAV2):
+            payload, arrival = payload_of(v, t, rng, k), T0_UNIX_S + t + 0.005
+            if v is UAV2 and k % 15 == 0 and k > 0:
+                held = payload  # delivered after the next one
+                continue
+            fusion.receive(f"irtrack/{v.name}/track", payload, arrival)
+            if v is UAV2 and held is not None:
+                fusion.receive("irtrack/uav2/track", held, arrival + 0.001)
+                held = None
+        out += fusion.flush()
+    st = fusion.status(T0_UNIX_S + 6.0)
+    assert "name_clash" not in st["events"] and st["name_clash"] == [] and fusion.counter["ray_name_clash"] == 0
+    assert st["rejected"]["ray_out_of_order"] == 11
+    last = [p for k, p in out if k == fleet_track_key()][-1]
+    assert sorted(c["vehicle"] for c in last["vehicles"]) == ["uav1", "uav2"] and last["observable"]
+
+
 def test_a_flood_is_bounded_counted_and_never_starves_the_output():
     """Above ~3000 messages a second the main loop never left its receive loop (no fleet track, no status while the
     flood lasted) and the inbox grew without bound: it holds INBOX_MAX now (the rest dropped, counted inbox_full),
