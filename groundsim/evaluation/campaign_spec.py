@@ -33,6 +33,7 @@ __all__ = [
     "MODES",
     "NOISE_MODELS",
     "MAX_RUNS",
+    "MAX_SEED",
     "Geometry",
     "REFERENCE_GEOMETRY",
     "ManoeuvreScaled",
@@ -48,6 +49,7 @@ log = logging.getLogger(__name__)
 MODES = ("synthetic", "closed_loop")
 NOISE_MODELS = ("case", "config")
 MAX_RUNS = 100_000  # a spec expanding past this is a mistake, not a campaign
+MAX_SEED = 2**63 - 1  # the table's seed column is a 64-bit integer (runs.parquet could not hold a larger one)
 GROUND_CLEARANCE_M = 1.0  # a derived path must stay this far above the origin's ground plane (NED d < -1 m)
 
 
@@ -270,7 +272,7 @@ def _geometries(d, path, fail) -> tuple[Geometry, ...]:
         draws = check_integer(d["draws"], f"{path}.draws", fail, lo=1, hi=MAX_RUNS)
     elif ranges:
         fail(f"{path}.draws", "a number of random draws (required when an axis is {min: .., max: ..})")
-    seed = check_integer(d.get("seed", 0), f"{path}.seed", fail, lo=0, hi=2**63 - 1)
+    seed = check_integer(d.get("seed", 0), f"{path}.seed", fail, lo=0, hi=MAX_SEED)
     rng = np.random.default_rng(np.random.SeedSequence([seed, 0x6E0]))
     out: list[Geometry] = []
     import itertools
@@ -336,7 +338,7 @@ def spec_from_dict(d, source="<dict>", spec_dir: Path | None = None) -> Campaign
     if isinstance(seeds_v, list):
         if not seeds_v:
             fail("seeds", "a count >= 1 or a non-empty list of run seeds >= 0", seeds_v)
-        seeds = tuple(check_integer(s, f"seeds[{i}]", fail, lo=0) for i, s in enumerate(seeds_v))
+        seeds = tuple(check_integer(s, f"seeds[{i}]", fail, lo=0, hi=MAX_SEED) for i, s in enumerate(seeds_v))
         if len(set(seeds)) != len(seeds):
             fail("seeds", "distinct run seeds", seeds_v)
     else:

@@ -55,6 +55,20 @@ def test_two_files_of_the_same_scenario_name_are_refused(tmp_path):
         _spec(tmp_path, scenarios=["P1", "copy.yaml"])
 
 
+def test_a_seed_beyond_the_tables_integers_is_refused_naming_it(tmp_path):
+    """The table's seed column is a 64-bit integer: a larger seed ran every run, then failed writing runs.parquet
+    (OverflowError), on every run of the same command too."""
+    from groundsim.evaluation.campaign_spec import load_spec
+
+    spec = _spec_file(
+        tmp_path, "scenarios: [P1]\nnoise: [RTK]\nalgorithms: [paper]\nseeds: [1, 99999999999999999999999]\n"
+    )
+    with pytest.raises(ConfigError) as info:
+        load_spec(spec)
+    assert str(info.value).startswith(f"{spec}: seeds[1]: expected an integer") and "\n" not in str(info.value)
+    assert _spec(tmp_path, seeds=[2**63 - 1]).seeds == (2**63 - 1,)
+
+
 def test_a_geometry_error_names_the_spec_and_the_field_once(tmp_path):
     with pytest.raises(ConfigError) as info:
         _spec(tmp_path, geometry={"range_scale": [0.01]})
