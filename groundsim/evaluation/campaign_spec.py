@@ -385,6 +385,12 @@ def spec_from_dict(d, source="<dict>", spec_dir: Path | None = None) -> Campaign
     names: dict[str, int] = {}
     for i, p in enumerate(paths):  # every scenario loads, every variant is a valid geometry, the duration fits
         sc = load_scenario(p)
+        if sc.is_fleet:  # a case flies one observer: the others would be left out of its runs without a word
+            fail.text(
+                f"scenarios[{i}]",
+                "a scenario of one observer (python -m bench.fleet measures a fleet)",
+                f"{scenarios[i]!r}, a fleet of {len(sc.observers)} ({', '.join(o.name for o in sc.observers)})",
+            )
         if sc.name in names:  # rows, run ids and the report are keyed by the scenario's name
             fail.text(
                 f"scenarios[{i}]",

@@ -55,6 +55,15 @@ def test_two_files_of_the_same_scenario_name_are_refused(tmp_path):
         _spec(tmp_path, scenarios=["P1", "copy.yaml"])
 
 
+def test_a_fleet_scenario_is_refused_naming_its_entry(tmp_path):
+    """A campaign runs one observer per case: F1 had run, scored on its first observer alone, without a word."""
+    with pytest.raises(ConfigError) as info:
+        _spec(tmp_path, scenarios=["P1", "F1"])
+    text = str(info.value)
+    assert text.startswith(f"{tmp_path / 'spec.yaml'}: scenarios[1]: expected a scenario of one observer")
+    assert "F1" in text and "\n" not in text
+
+
 def test_a_seed_beyond_the_tables_integers_is_refused_naming_it(tmp_path):
     """The table's seed column is a 64-bit integer: a larger seed ran every run, then failed writing runs.parquet
     (OverflowError), on every run of the same command too."""
