@@ -95,7 +95,7 @@ pymavlink's resynchronising parser; a partial frame left by garbage can swallow 
 or three real messages before it resyncs (measured), which periodic requesters ride out.
 
 Errors: a malformed connection string is a :class:`MavlinkConfigError` (a ConfigError); a
-port in use or a device that cannot be opened is a :class:`MavlinkLinkError`; both
+host name that does not resolve, a port in use or a device that cannot be opened is a :class:`MavlinkLinkError`; both
 :class:`~onboard.core.errors.IrtrackError`, one line, for the CLI to map to exit code 2.  Invalid
 state is an :class:`~onboard.core.errors.InputError` naming the field.  Nothing received from the
 network raises out of :meth:`~MavlinkVehicle.poll`.
@@ -250,10 +250,11 @@ class MavlinkLinkError(IrtrackError):
 # --------------------------------------------------------------------------- connection
 
 
-def _probe_bind(kind: str, host: str, port: int, connection: str) -> None:
-    """pymavlink binds with SO_REUSEADDR, which lets a second UDP socket share a busy port on
-    Linux and hides the clash; probe with a plain bind first so "port in use" is an error."""
-    stype = socket.SOCK_DGRAM if kind == "udpin" else socket.SOCK_STREAM
+def _resolve(kind: str, host: str, port: int, connection: str) -> tuple:
+    """``(family, socket type, address)`` of ``host:port``; a name that does not resolve is a MavlinkLinkError.
+    Every kind is looked up before pymavlink opens it: its udpout takes any name and fails each send to one that
+    does not resolve without a word, so a mistyped host had the whole run's MAVLink lost and the run exit 0."""
+    stype = socket.SOCK_DGRAM if kind.startswith("udp") else socket.SOCK_STREAM
     try:
         infos = socket.getaddrinfo(host, port, 0, stype)
     except socket.gaierror as exc:
@@ -261,6 +262,13 @@ def _probe_bind(kind: str, host: str, port: int, connection: str) -> None:
             f"mavlink: cannot open {connection!r}: cannot resolve {host!r} ({exc.strerror})"
         ) from None
     family, _, _, _, addr = infos[0]
+    return family, stype, addr
+
+
+def _probe_bind(kind: str, host: str, port: int, connection: str) -> None:
+    """pymavlink binds with SO_REUSEADDR, which lets a second UDP socket share a busy port on
+    Linux and hides the clash; probe with a plain bind first so "port in use" is an error."""
+    family, stype, addr = _resolve(kind, host, port, connection)
     with socket.socket(family, stype) as s:
         try:
             s.bind(addr)
@@ -284,6 +292,8 @@ def open_mavlink2(connection: str, sysid: int, compid: int):
         raise MavlinkConfigError(str(exc)) from None
     if ep.listens:
         _probe_bind(ep.kind, ep.host, ep.port, connection)
+    elif ep.host is not None and ep.port is not None:
+        _resolve(ep.kind, ep.host, ep.port, connection)
     try:
         conn = connect(ep, sysid, compid, autoreconnect=False, retries=0)
     except (OSError, ValueError) as exc:

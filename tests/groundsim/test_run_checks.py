@@ -57,3 +57,16 @@ def test_outputs_on_the_scenario_file_or_on_each_other_are_refused(tmp_path, cap
     assert cli_main([*run, "--truth", str(same), "--record", str(same)]) == 2
     assert f"--record {same}: names the same file as --truth" in _one_line_error(capsys)
     assert scenario.read_bytes() == (scenarios_dir() / "P1.yaml").read_bytes() and not same.exists()
+
+
+@pytest.mark.parametrize("kind", ["udpout", "tcp"])
+def test_a_mavlink_host_that_does_not_resolve_is_one_line_exit_2(capsys, kind):
+    """udpout to a name no resolver knows (.invalid never resolves, RFC 6761): the run had gone on, exit 0, every
+    message lost without a word (only the listening kinds' hosts were looked up)."""
+    argv = ["run", "--rate", "max", "--duration", "0.2", "--no-render", "--mavlink", f"{kind}:nohost.invalid:1"]
+    assert cli_main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    assert err[0].startswith(
+        f"groundsim run: error: mavlink: cannot open '{kind}:nohost.invalid:1': cannot resolve 'nohost.invalid' ("
+    ), err
