@@ -28,6 +28,7 @@ from groundsim.world.scenario import (
     reference_scenario_paths,
 )
 from groundsim.world.spec import SpecFail, check_integer, check_mapping, check_number, check_string, read_spec_yaml
+from onboard.core.errors import ConfigError
 
 __all__ = [
     "MODES",
@@ -333,7 +334,13 @@ def spec_from_dict(d, source="<dict>", spec_dir: Path | None = None) -> Campaign
     from onboard.pipeline.plugins import load_factory
 
     for i, a in enumerate(algorithms):
-        load_factory(a, option=f"{source}: algorithms[{i}]")  # an unknown plug-in fails here, before any run
+        option = f"{source}: algorithms[{i}]"
+        try:
+            load_factory(a, option=option)  # an unknown plug-in fails here, before any run
+        except ConfigError as exc:  # not every refusal names the option (a module:Attribute that is a module)
+            if str(exc).startswith(option):
+                raise
+            raise ConfigError(f"{option}: {exc}") from None
     seeds_v = d.get("seeds", 1)
     if isinstance(seeds_v, list):
         if not seeds_v:

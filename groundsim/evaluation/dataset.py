@@ -845,6 +845,10 @@ def cmd_dataset(args) -> int:
             raise ConfigError(f"--seeds: expected an integer >= 1, got {args.seeds}")
         if args.seed0 < 0:
             raise ConfigError(f"--seed0: expected an integer >= 0, got {args.seed0}")
+        if args.seed0 + args.seeds - 1 >= 2**63:  # a run seed is 63 bits (groundsim.world.sim), the last one too
+            raise ConfigError(
+                f"--seed0: expected an integer in [0, 2^63 - {args.seeds}] with --seeds {args.seeds}, got {args.seed0}"
+            )
         workers = pool_workers(args.workers)
         options = DatasetOptions(
             nav_noise=args.nav_noise,

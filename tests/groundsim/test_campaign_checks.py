@@ -55,6 +55,12 @@ def test_two_files_of_the_same_scenario_name_are_refused(tmp_path):
         _spec(tmp_path, scenarios=["P1", "copy.yaml"])
 
 
+def test_a_plug_in_that_is_not_a_factory_names_the_spec_and_the_entry(tmp_path):
+    with pytest.raises(ConfigError) as info:
+        _spec(tmp_path, algorithms=["paper", "os:path"])
+    assert str(info.value).startswith(f"{tmp_path / 'spec.yaml'}: algorithms[1]: plug-in 'os:path': expected a class")
+
+
 def test_a_fleet_scenario_is_refused_naming_its_entry(tmp_path):
     """A campaign runs one observer per case: F1 had run, scored on its first observer alone, without a word."""
     with pytest.raises(ConfigError) as info:

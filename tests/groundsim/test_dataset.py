@@ -359,6 +359,16 @@ def test_cli_negative_first_seed_names_its_option(capsys):
     assert capsys.readouterr().err.strip() == "groundsim dataset: error: --seed0: expected an integer >= 0, got -1"
 
 
+def test_cli_a_last_seed_beyond_63_bits_names_seed0(tmp_path, capsys):
+    """The run seed is a 63-bit integer: --seed0 past it had been reported as --seed, an option dataset has not."""
+    out = tmp_path / "ds"
+    assert cli_main(["dataset", "--seed0", str(2**63 - 1), "--seeds", "2", "--out", str(out)]) == 2
+    assert capsys.readouterr().err.strip() == (
+        f"groundsim dataset: error: --seed0: expected an integer in [0, 2^63 - 2] with --seeds 2, got {2**63 - 1}"
+    )
+    assert not out.exists()
+
+
 def test_obs_csv_is_reconstructs_input_and_it_reads_it(dataset, tmp_path, capsys):
     """--format obs: each in-image frame's label pixel and the MEASURED camera pose (cameras.csv's meas_*), in
     onboard.reconstruct's columns; the reconstruction reads it and writes one position per row."""
