@@ -8,6 +8,7 @@ machine, free ports instead of the fixed ones)::
     this process        zenoh router, tcp/127.0.0.1:R (gossip on, as deploy/zenoh-router.json5)
     python -m onboard --config config/fleet/uavN.yaml --mavlink udpin:127.0.0.1:M_N --zenoh-connect tcp/...:R
     python -m onboard.fuse --vehicles uav1 uav2 --zenoh-connect tcp/127.0.0.1:R --zenoh-listen tcp/127.0.0.1:0
+                        --zenoh-gossip-autoconnect
     python -m groundsim run --scenario F1 --rate realtime --start-time-utc now --mavlink uavN=udpout:...:M_N ...
     this process        a peer on the router: irtrack/*/ir/frame, irtrack/*/track, irtrack/fleet/track
 
@@ -181,6 +182,8 @@ class FlightPlan:
             self.endpoint,
             "--zenoh-listen",
             "tcp/127.0.0.1:0",
+            # the daemons dial nothing they were not given: the fusion dials them, as the router's gossip names them
+            "--zenoh-gossip-autoconnect",
             "--status-interval-s",
             "0.5",
             # the simulator's clocks are the flight's: on a loaded machine its "real time" slips seconds behind

@@ -7,7 +7,7 @@
                            [--max-time-sigma-ms 50] [--silent-after-s 1] [--clock-tolerance-ms 10]
                            [--reject-log-interval-s 10] [--log-level INFO]
                            [--zenoh-connect ENDPOINT]... [--zenoh-listen ENDPOINT]... [--zenoh-config FILE]
-                           [--zenoh-multicast-scouting | --no-zenoh-multicast-scouting]
+                           [--zenoh-multicast-scouting | --no-zenoh-multicast-scouting] [--zenoh-gossip-autoconnect]
 
 It subscribes ``irtrack/*/track`` (every vehicle; ``--vehicles`` keeps only those named), turns each track
 with a line of sight into a ray in one frame and on one clock (:mod:`onboard.io.fleet_wire`), feeds the
@@ -23,8 +23,11 @@ median, ms; ``latency_floor_ms``: the floors themselves) and ``clock_inconsisten
 ``clock_step`` (WARNING): a vehicle's ``UTC - boot`` offset stepped (:class:`~onboard.io.fleet_wire.CommonClock`);
 the clock check starts judging it over from its new stamps, and until it has, its rays carry the step as their
 time sigma.
-A vehicle is one once a track of it parses; ``MAX_VEHICLES`` (64) are kept at most.  The zenoh options are :mod:`onboard.app.watch`'s (the daemon's names), and so is
-their default, which is not the daemon's: with none given it connects to ``tcp/127.0.0.1:7447``.
+A vehicle is one once a track of it parses; ``MAX_VEHICLES`` (64) are kept at most.  The zenoh options are
+:mod:`onboard.app.watch`'s (the daemon's names), and so is their default, which is not the daemon's: with none given it
+connects to ``tcp/127.0.0.1:7447``.  Like the daemon it dials no peer that gossip names (:func:`zenoh_settings`;
+``--zenoh-gossip-autoconnect`` does): daemons that are peers of one router reach it only if it dials them, or if it
+is that router, or a client of it.
 
 Threads: zenoh's callback only queues ``(key, payload, arrival time)``; one loop drains the queue, adds
 every ray, then solves each touched target that is due once and publishes: due when every live vehicle's
@@ -68,6 +71,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import json
 import logging
 import math
@@ -113,9 +117,9 @@ from onboard.io.fleet_wire import (
     vehicle_fleet_track_key,
     vehicle_from_track_key,
 )
-from onboard.io.zenoh_session import check_vehicle_name, open_session
+from onboard.io.zenoh_session import ZenohConfig, check_vehicle_name, open_session
 
-__all__ = ["FLEET_STATUS_SCHEMA", "EVENTS", "Fusion", "build_parser", "main", "warm_up"]
+__all__ = ["FLEET_STATUS_SCHEMA", "EVENTS", "Fusion", "build_parser", "zenoh_settings", "main", "warm_up"]
 
 log = logging.getLogger(__name__)
 
@@ -803,7 +807,23 @@ def build_parser() -> argparse.ArgumentParser:
         scouting_help=None,
         no_scouting_help=None,
     )
+    p.add_argument(
+        "--zenoh-gossip-autoconnect",
+        action="store_true",
+        help="also dial the peers and routers that other sessions' gossip names (default: only the endpoints given, "
+        "as the daemon's zenoh.gossip_autoconnect false); a loopback fleet of peers that meet at one router needs it "
+        "(docs/fleet.md)",
+    )
     return p
+
+
+def zenoh_settings(args: argparse.Namespace) -> ZenohConfig:
+    """The session's settings: the watcher's options and default endpoint (:func:`onboard.app.watch.zenoh_config`),
+    dialing no peer that gossip names unless ``--zenoh-gossip-autoconnect``, as the daemon: those are addresses nobody
+    gave the fusion (a router's peers, whatever they listen on), and a direct peer link also goes around a router's
+    access control.  It overrides a ``--zenoh-config`` file's ``scouting/gossip/autoconnect``, as the daemon's
+    setting does."""
+    return dataclasses.replace(zenoh_config(args), gossip_autoconnect=bool(args.zenoh_gossip_autoconnect))
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -835,7 +855,7 @@ def _main(argv: Sequence[str] | None) -> int:
     session = None
     status_pub = None
     try:
-        settings = zenoh_config(args)
+        settings = zenoh_settings(args)
         session = open_session(settings)
         inbox = Inbox()
         session.declare_subscriber(
@@ -850,7 +870,13 @@ def _main(argv: Sequence[str] | None) -> int:
         where = list(settings.connect + settings.listen) + (
             [f"--zenoh-config {settings.config_file}"] if settings.config_file is not None else []
         )
-        log.info("fusing %s from %s on %s", which, TRACKS_KEY_EXPR, ", ".join(where) or "zenoh's defaults")
+        log.info(
+            "fusing %s from %s on %s, dialing gossiped peers %s",
+            which,
+            TRACKS_KEY_EXPR,
+            ", ".join(where) or "zenoh's defaults",
+            "on" if settings.gossip_autoconnect else "off",
+        )
         deadline = None if args.seconds == 0 else time.monotonic() + args.seconds
         next_status = time.monotonic() + args.status_interval_s
         next_watch = time.monotonic() + WATCH_INTERVAL_S

@@ -339,6 +339,79 @@ def test_the_fuse_process_fuses_two_vehicles_degrades_to_one_honestly_and_takes_
     assert got.status[-1]["rejected"].get("stale", 0) == 0
 
 
+def test_the_fusion_dials_no_peer_that_gossip_names_unless_told():
+    """The fusion left zenoh's gossip autoconnect unset, so zenoh's default dialed every peer and router a router's
+    gossip named (addresses nobody gave it); the daemon turns it off, and so does the fusion now."""
+    from onboard.app.fuse import zenoh_settings
+    from onboard.io.zenoh_session import build_config
+
+    def autoconnect(*argv: str):
+        settings = zenoh_settings(build_parser().parse_args(list(argv)))
+        return settings.gossip_autoconnect, json.loads(build_config(settings).get_json("scouting/gossip/autoconnect"))
+
+    assert autoconnect() == (False, [])
+    assert autoconnect("--zenoh-connect", "tcp/127.0.0.1:7447", "--zenoh-listen", "tcp/127.0.0.1:0") == (False, [])
+    assert autoconnect("--zenoh-config", str(REPO / "deploy" / "zenoh-router.json5")) == (False, [])
+    assert autoconnect("--zenoh-gossip-autoconnect") == (True, ["router", "peer"])
+
+
+@pytest.mark.integration
+@pytest.mark.parametrize("gossip", [False, True])
+def test_the_fuse_process_hears_a_routers_other_peers_only_when_told_to_dial_them(gossip):
+    """A router with gossip on (deploy/zenoh-router.json5's), a daemon-like peer that listens on loopback and dials
+    nothing, and the fusion connected to the router as a peer: by default it never dials the daemon (nothing
+    arrives: a zenoh router does not relay between peers), with --zenoh-gossip-autoconnect it does.  A third peer
+    that dials what gossip names is the control: the daemon's tracks reach it."""
+    import time
+
+    import zenoh
+
+    from groundsim.io.ports import free_tcp_port
+    from onboard.io.zenoh_session import TRACK_ENCODING, ZenohConfig, open_session, track_key
+
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    cfg = zenoh.Config()
+    cfg.insert_json5("mode", json.dumps("router"))
+    cfg.insert_json5("listen/endpoints", json.dumps([endpoint]))
+    cfg.insert_json5("scouting/multicast/enabled", "false")
+    cfg.insert_json5("scouting/gossip/enabled", "true")
+    sessions = [zenoh.open(cfg)]
+    got = _Collector()
+    control: list[bytes] = []
+    proc = None
+    try:
+        daemon = open_session(ZenohConfig(connect=(endpoint,), listen=("tcp/127.0.0.1:0",), gossip_autoconnect=False))
+        sessions.append(daemon)
+        pub = daemon.declare_publisher(track_key("uav1"), encoding=TRACK_ENCODING)
+        watcher = open_session(ZenohConfig(connect=(endpoint,), listen=("tcp/127.0.0.1:0",), gossip_autoconnect=True))
+        sessions.append(watcher)
+        watcher.declare_subscriber("irtrack/fleet/status", got.on_status)
+        watcher.declare_subscriber(track_key("uav1"), lambda s: control.append(s.payload.to_bytes()))
+        argv = ["--zenoh-connect", endpoint, "--zenoh-listen", "tcp/127.0.0.1:0", "--status-interval-s", "0.2"]
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "onboard.fuse", *argv, "--seconds", "60", "--log-level", "WARNING"]
+            + (["--zenoh-gossip-autoconnect"] if gossip else []),
+            cwd=REPO,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+        )
+        assert got.wait_for(lambda g: g.status, START_TIMEOUT_S), "no status from the fuse process"
+        rng, t0 = np.random.default_rng(9), time.time()
+        for k in range(60):  # 2 s of a 30 Hz camera after the fusion is up
+            pub.put(payload_of(UAV1, k / 30, rng, k, t0_unix_s=t0))
+            time.sleep(max(0.0, t0 + (k + 1) / 30 - time.time()))
+        assert len(control) >= 30, "the control peer heard nothing: the daemon-like peer is unreachable"
+        seen = len(got.status)
+        assert got.wait_for(lambda g: len(g.status) > seen, DATA_TIMEOUT_S)  # a status from after the last put
+        assert (got.status[-1]["received"] > 0) == gossip, got.status[-1]["received"]
+    finally:
+        for s in reversed(sessions):
+            s.close()
+        if proc is not None:
+            terminate(proc, STOP_TIMEOUT_S)
+    assert proc.returncode == 0, proc.stderr.read().decode() if proc.stderr else ""
+
+
 def test_the_arrival_clock_takes_the_shortest_latency_and_forgets_it_on_a_reboot():
     clock = CommonClock(window_s=10.0)
     t, src = clock.time_s("uav1", 5_000_000, None, 100.030)
