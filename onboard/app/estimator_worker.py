@@ -488,14 +488,20 @@ class ProcessEstimator(_Carried):
     def _begin_start(self) -> None:
         """Spawn a replacement worker on a thread: the frame loop goes on (carried estimates) while a fork server
         that died with the worker is started again, and adopts the worker when it is there (:meth:`_adopt_started`)."""
-        box: dict[str, Any] = {}
+        box: dict[str, Any] = {"lock": threading.Lock(), "closed": False}
 
         def run() -> None:
             name_os_thread("irtrack-est-start")
             try:
-                box["worker"] = self._spawn()
+                worker = self._spawn()
             except Exception as exc:  # noqa: BLE001 - any failure to start is counted by the frame loop
                 box["error"] = exc
+                return
+            with box["lock"]:
+                if not box["closed"]:
+                    box["worker"] = worker
+                    return
+            _stop_unadopted(*worker)  # close() came first and did not wait for it
 
         thread = threading.Thread(target=run, name="irtrack-estimator-start", daemon=True)
         thread.start()
@@ -806,14 +812,16 @@ class ProcessEstimator(_Carried):
     def close(self, timeout_s: float = 1.0) -> None:
         starting, self._starting = self._starting, None
         if starting is not None:  # a replacement being spawned: stopped with the rest, never left running
-            starting[0].join(timeout_s / 2)
-            if "worker" in starting[1]:
+            box = starting[1]
+            starting[0].join(min(timeout_s / 2, 0.05))  # a start with the fork server up is milliseconds
+            with box["lock"]:
+                box["closed"] = True  # one not done yet is stopped by its thread when it is (_begin_start)
+                worker = box.get("worker")
+            if worker is not None:
                 if self._proc is None:
-                    self._adopt(*starting[1]["worker"])
+                    self._adopt(*worker)
                 else:
-                    proc, conn = starting[1]["worker"]
-                    conn.close()
-                    proc.kill()
+                    _stop_unadopted(*worker)
         proc, conn = self._proc, self._conn
         if proc is None or conn is None:
             return
@@ -828,6 +836,13 @@ class ProcessEstimator(_Carried):
             proc.join(timeout_s / 4)
         conn.close()
         self._proc = None
+
+
+def _stop_unadopted(proc: BaseProcess, conn: Connection) -> None:
+    """Stop a worker no estimator took (spawned after, or beside, the one it has): its pipe closed, killed, reaped."""
+    conn.close()
+    proc.kill()
+    proc.join(1.0)
 
 
 def as_observation(t_s, uv_px, intrinsics, p_cam_ned_m, q_ned_from_cam) -> tuple:
