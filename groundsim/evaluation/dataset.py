@@ -84,6 +84,7 @@ import hashlib
 import json
 import logging
 import math
+import signal
 import sys
 import time
 from dataclasses import dataclass
@@ -100,7 +101,7 @@ from groundsim.evaluation.parallel import (
     report_progress,
     run_jobs,
 )
-from groundsim.io.stop_signals import print_interrupted, sigterm_as_ctrl_c
+from groundsim.io.stop_signals import finish_despite_signals, print_interrupted, sigterm_as_ctrl_c
 from onboard.core.errors import ConfigError, InputError
 
 __all__ = [
@@ -721,6 +722,8 @@ def _replaceable(out: Path, names: set[str]) -> None:
         # a run replaces files by name (coco.json, the seqmap, the sequences' files): without a manifest, only a new
         # or empty folder, or one of sequences alone (a dataset interrupted before its manifest), is its own
         refuse_foreign_out(out, _sequences_only, "groundsim dataset", f"manifest.json of schema {DATASET_SCHEMA}")
+        earlier = {e.name for e in out.iterdir()} if out.is_dir() else set()
+        _refuse_kept(out, earlier - names, "sequences of an interrupted run")
         return
     try:
         doc = json.loads(path.read_text(encoding="utf-8"))
@@ -732,12 +735,18 @@ def _replaceable(out: Path, names: set[str]) -> None:
             f"--out {out}: holds a manifest.json that is not a dataset's ({type(exc).__name__}: {exc}); give "
             f"another --out"
         ) from None
-    kept = sorted(earlier - names)
+    _refuse_kept(out, earlier - names, "a dataset with sequences")
+
+
+def _refuse_kept(out: Path, kept_names: set[str], what: str) -> None:
+    """Refuse an ``out`` holding sequences (``kept_names``) this run would not make: the manifest it writes would
+    not list them while their files stayed (a dataset that says less than it holds)."""
+    kept = sorted(kept_names)
     if kept:
         shown = ", ".join(kept[:4]) + (f" and {len(kept) - 4} more" if len(kept) > 4 else "")
         raise ConfigError(
-            f"--out {out}: holds a dataset with sequences this run does not make ({shown}); its manifest would no "
-            f"longer list them: give another --out, or remove the folder first"
+            f"--out {out}: holds {what} this run does not make ({shown}); its manifest would not list them: give "
+            f"another --out, or remove the folder first"
         )
 
 
@@ -792,16 +801,21 @@ def export_dataset(
     finally:
         if bar is not None:
             bar.close()
-    if "coco" in options.formats:
-        desc = f"irtrack dataset: {', '.join(sc.name for sc in scenarios)}; seeds {seeds}"
-        _write_replacing(out / "coco.json", json.dumps(coco_document(summaries, desc), indent=1) + "\n")
-    if "mot" in options.formats:
-        (out / SEQMAP).parent.mkdir(exist_ok=True)
-        _write_replacing(out / SEQMAP, "name\n" + "".join(s.name + "\n" for s in summaries))
-    # last: a dataset with a manifest is a whole one
-    _write_replacing(
-        out / "manifest.json", json.dumps(_manifest(scenarios, seeds, options, summaries), indent=2) + "\n"
-    )
+    # every sequence is written: a signal now waits for the index (a Ctrl-C then ends the command as interrupted,
+    # the dataset whole), which it would otherwise leave without its manifest, to be rendered again
+    with finish_despite_signals("the dataset's index") as received:
+        if "coco" in options.formats:
+            desc = f"irtrack dataset: {', '.join(sc.name for sc in scenarios)}; seeds {seeds}"
+            _write_replacing(out / "coco.json", json.dumps(coco_document(summaries, desc), indent=1) + "\n")
+        if "mot" in options.formats:
+            (out / SEQMAP).parent.mkdir(exist_ok=True)
+            _write_replacing(out / SEQMAP, "name\n" + "".join(s.name + "\n" for s in summaries))
+        # last: a dataset with a manifest is a whole one
+        _write_replacing(
+            out / "manifest.json", json.dumps(_manifest(scenarios, seeds, options, summaries), indent=2) + "\n"
+        )
+    if signal.SIGINT in received:
+        raise DatasetInterrupted(summaries, len(jobs))
     return summaries, time.perf_counter() - t0
 
 

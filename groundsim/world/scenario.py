@@ -873,7 +873,7 @@ def refuse_duplicate_scenarios(
         if name in by_name:
             raise ConfigError(
                 f"--scenario: {by_name[name]} and {given} are both scenario {name!r} (their runs would share"
-                f" {shared}); give each scenario its own name:"
+                f" {shared}); give each scenario its own name"
             )
         by_file[key] = by_name[name] = given
 

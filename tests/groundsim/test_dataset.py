@@ -528,3 +528,39 @@ def test_an_interrupted_run_into_a_dataset_leaves_no_index_of_frames_it_removed(
     manifest = json.loads((tmp_path / "manifest.json").read_text())
     for seq in manifest["sequences"]:
         assert len(list((tmp_path / seq["name"] / "img1").glob("*.png"))) == seq["frames"]
+
+
+def test_a_smaller_run_into_an_interrupted_dataset_is_refused_as_into_a_whole_one(tmp_path, capsys):
+    """A folder an interrupted run left (sequences, no manifest) is refused to a run that would not make all of its
+    sequences again, as a whole dataset is: its manifest would not list the others while their files stayed."""
+    export_dataset([_scenario()], [0, 1], tmp_path, DatasetOptions(duration_s=0.1), progress=False)
+    for f in ("manifest.json", "seqmaps/irtrack-all.txt"):  # what an interrupted run leaves
+        (tmp_path / f).unlink()
+    (tmp_path / "seqmaps").rmdir()
+    args = ["dataset", "--seeds", "1", "--duration", "0.1", "--no-progress", "--out", str(tmp_path)]
+    assert cli_main(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert "holds sequences of an interrupted run this run does not make (P1-RTK-s1)" in err, err
+    assert not (tmp_path / "manifest.json").exists()
+
+
+def test_a_ctrl_c_while_the_index_is_written_waits_for_it(tmp_path, monkeypatch, capsys):
+    """Every sequence written, a Ctrl-C as the index is written: the index is finished (a whole dataset, which the
+    same command need not render again), then the command ends as interrupted, naming what it wrote."""
+    import signal
+
+    import groundsim.evaluation.dataset as dataset
+
+    real = dataset.coco_document
+
+    def ctrl_c_then_document(*a, **k):
+        signal.raise_signal(signal.SIGINT)
+        return real(*a, **k)
+
+    monkeypatch.setattr(dataset, "coco_document", ctrl_c_then_document)
+    args = ["dataset", "--seeds", "1", "--duration", "0.1", "--format", "mot", "coco", "--no-progress"]
+    assert cli_main([*args, "--out", str(tmp_path)]) == 130
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1] == f"interrupted: 1 of 1 sequences written in {tmp_path}: P1-RTK-s0", err
+    manifest = json.loads((tmp_path / "manifest.json").read_text())
+    assert [s["name"] for s in manifest["sequences"]] == ["P1-RTK-s0"] and (tmp_path / "coco.json").is_file()
