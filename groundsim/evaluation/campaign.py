@@ -106,6 +106,7 @@ from groundsim.io.stop_signals import finish_despite_signals, sigterm_as_ctrl_c
 from groundsim.world.noise_cases import NoiseCase, load_noise_cases
 from groundsim.world.scenario import Scenario, load_scenario
 from onboard.core.errors import ConfigError
+from onboard.estimation.metrics import nees_per_point
 
 __all__ = [
     "LOG_NAME",
@@ -256,11 +257,7 @@ def score_track(t_s, truth_p_ned_m, cam_p_ned_m, est_p_ned_m, est_cov_ned_m2, ob
     rng_m = np.linalg.norm(truth - np.asarray(cam_p_ned_m, dtype=float), axis=1)
     rel = 100.0 * e / rng_m
     nees = np.full(F, np.nan)
-    for k in np.flatnonzero(has):
-        try:
-            nees[k] = float(e_vec[k] @ np.linalg.solve(P[k], e_vec[k]))
-        except np.linalg.LinAlgError:
-            pass
+    nees[has] = nees_per_point(e_vec[has], P[has])
     with np.errstate(invalid="ignore"):
         sig3 = 3.0 * np.sqrt(np.maximum(np.einsum("fii->f", P), 0.0))
     nan = math.nan

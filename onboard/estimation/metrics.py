@@ -36,6 +36,7 @@ frames -> a JSON-ready dict with the per-cent figures the tables print).
 
 from __future__ import annotations
 
+import contextlib
 import math
 from dataclasses import asdict, dataclass
 
@@ -44,7 +45,7 @@ from scipy.special import gammaincinv
 
 from onboard.core.errors import InputError
 
-__all__ = ["ErrorReport", "evaluate", "nees_interval_95", "score_frames"]
+__all__ = ["ErrorReport", "evaluate", "nees_interval_95", "nees_per_point", "score_frames"]
 
 #: relative asymmetry tolerated in a covariance before it is rejected as not symmetric
 COV_SYMMETRY_RTOL = 1e-6
@@ -93,6 +94,21 @@ class ErrorReport:
 
 def _json_float(x):
     return float(x) if x is not None and math.isfinite(x) else None
+
+
+def nees_per_point(e_ned_m, cov_ned_m2, singular: float = math.nan) -> np.ndarray:
+    """``e_i' P_i^-1 e_i`` per row of errors (N, 3) and covariances (N, 3, 3); ``singular`` for a row whose
+    covariance cannot be inverted (NaN: left out of a mean; inf: beyond any bound)."""
+    e = np.asarray(e_ned_m, dtype=float).reshape(-1, 3)
+    P = np.asarray(cov_ned_m2, dtype=float).reshape(-1, 3, 3)
+    try:
+        return np.einsum("fi,fi->f", e, np.linalg.solve(P, e[:, :, None])[:, :, 0])
+    except np.linalg.LinAlgError:  # one singular row fails the whole stack: row by row
+        out = np.full(len(e), singular)
+        for i in range(len(e)):
+            with contextlib.suppress(np.linalg.LinAlgError):
+                out[i] = float(e[i] @ np.linalg.solve(P[i], e[i]))
+        return out
 
 
 def nees_interval_95(frames: int, dof: int = 3) -> tuple[float, float]:

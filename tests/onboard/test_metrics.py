@@ -217,3 +217,14 @@ def test_score_frames_reports_a_refused_covariance_and_keeps_the_errors():
     assert "note" not in ok and ok["mean_nees"] == pytest.approx(1.0, abs=EXACT_TOL)  # e = (0, 0, 1), P = I
     with pytest.raises(InputError, match="est_p_ned_m row 0 is not finite"):  # bad points are never hidden
         score_frames(TRUTH, np.full((2, 3), np.nan), CAM, cov, [True, True])
+
+
+def test_nees_per_point_is_e_p_inverse_e_and_a_singular_row_gets_the_caller_s_value():
+    from onboard.estimation.metrics import nees_per_point
+
+    e = np.array([[1.0, 2.0, 0.0], [3.0, 0.0, 0.0]])
+    P = np.array([np.diag([1.0, 4.0, 9.0]), np.diag([9.0, 1.0, 0.0])])  # the second cannot be inverted
+    out = nees_per_point(e, P, singular=np.inf)
+    assert out[0] == pytest.approx(1.0 + 1.0) and out[1] == np.inf
+    assert np.isnan(nees_per_point(e, P)[1])
+    np.testing.assert_allclose(nees_per_point(e[:1], P[:1]), [2.0])  # a stack that inverts: at once
