@@ -6,14 +6,12 @@ from __future__ import annotations
 
 import logging
 import math
-import os
-from collections.abc import Callable
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from groundsim.evaluation.campaign_spec import CampaignSpec
+from groundsim.evaluation.out_dir import write_replacing
 from groundsim.evaluation.report import markdown_head
 
 __all__ = [
@@ -111,31 +109,17 @@ def table_rows(rows: list[dict]):
     return df[known + sorted(c for c in df.columns if c not in COLUMN_ORDER)]
 
 
-def _write_replacing(path: Path, write: Callable[[Path], Any]) -> Any:
-    """``write(tmp)`` into a file beside ``path`` (same suffix), renamed over ``path`` once written; returns what
-    ``write`` returns.  A write stopped half way (a kill, a full disk) leaves the earlier file whole, not one
-    cut short that reads as complete; ``path`` is left as it is when ``write`` made no file."""
-    tmp = path.with_name(f".{path.stem}.partial{path.suffix}")
-    try:
-        result = write(tmp)
-        if tmp.exists():
-            os.replace(tmp, path)
-        return result
-    finally:
-        tmp.unlink(missing_ok=True)
-
-
 def write_table(out: Path, rows: list[dict]) -> dict:
     """``runs.csv`` (always) and ``runs.parquet`` (when pyarrow is installed), each replaced whole."""
     df = table_rows(rows)
     files = {TABLE_NAME: out / TABLE_NAME}
-    _write_replacing(out / TABLE_NAME, lambda p: df.to_csv(p, index=False))
+    write_replacing(out / TABLE_NAME, lambda p: df.to_csv(p, index=False))
     try:
         import pyarrow  # noqa: F401
     except ImportError:
         pass
     else:
-        _write_replacing(out / PARQUET_NAME, lambda p: df.to_parquet(p, index=False))
+        write_replacing(out / PARQUET_NAME, lambda p: df.to_parquet(p, index=False))
         files[PARQUET_NAME] = out / PARQUET_NAME
     return files
 
@@ -282,7 +266,7 @@ def write_report(out: Path, spec: CampaignSpec, rows: list[dict], run_info: dict
     from groundsim.evaluation.campaign_plots import plot_manoeuvre
     from groundsim.evaluation.scoring import OBSERVABLE_AFTER_S
 
-    has_fig = _write_replacing(out / FIGURE_NAME, lambda p: plot_manoeuvre(p, mrows, GOOD_ERR_PCT, OBSERVABLE_AFTER_S))
+    has_fig = write_replacing(out / FIGURE_NAME, lambda p: plot_manoeuvre(p, mrows, GOOD_ERR_PCT, OBSERVABLE_AFTER_S))
     if has_fig:
         files[FIGURE_NAME] = out / FIGURE_NAME
     else:  # an earlier sweep's figure beside this sweep's report would be read as this one's
@@ -366,7 +350,7 @@ def write_report(out: Path, spec: CampaignSpec, rows: list[dict], run_info: dict
                 f"- {r['scenario']} {r['geometry']} {r['noise']} {r['algorithm']} seed {r['seed']}: {r.get('error')}"
             )
         L.append("")
-    _write_replacing(out / REPORT_NAME, lambda p: p.write_text("\n".join(L), encoding="utf-8"))
+    write_replacing(out / REPORT_NAME, lambda p: p.write_text("\n".join(L), encoding="utf-8"))
     files[REPORT_NAME] = out / REPORT_NAME
     log.debug("report: %d ok rows", len(ok))
     return files

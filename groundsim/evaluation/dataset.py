@@ -92,7 +92,7 @@ from pathlib import Path
 
 import numpy as np
 
-from groundsim.evaluation.out_dir import make_out_dir, refuse_foreign_out
+from groundsim.evaluation.out_dir import make_out_dir, refuse_foreign_out, write_replacing
 from groundsim.evaluation.parallel import (
     JobsInterrupted,
     pool_workers,
@@ -806,12 +806,12 @@ def export_dataset(
     with finish_despite_signals("the dataset's index") as received:
         if "coco" in options.formats:
             desc = f"irtrack dataset: {', '.join(sc.name for sc in scenarios)}; seeds {seeds}"
-            _write_replacing(out / "coco.json", json.dumps(coco_document(summaries, desc), indent=1) + "\n")
+            _write_ascii(out / "coco.json", json.dumps(coco_document(summaries, desc), indent=1) + "\n")
         if "mot" in options.formats:
             (out / SEQMAP).parent.mkdir(exist_ok=True)
-            _write_replacing(out / SEQMAP, "name\n" + "".join(s.name + "\n" for s in summaries))
+            _write_ascii(out / SEQMAP, "name\n" + "".join(s.name + "\n" for s in summaries))
         # last: a dataset with a manifest is a whole one
-        _write_replacing(
+        _write_ascii(
             out / "manifest.json", json.dumps(_manifest(scenarios, seeds, options, summaries), indent=2) + "\n"
         )
     if signal.SIGINT in received:
@@ -835,14 +835,9 @@ def _remove_index(out: Path, options: DatasetOptions) -> None:
         (out / SEQMAP).parent.rmdir()
 
 
-def _write_replacing(path: Path, text: str) -> None:
-    """``text`` into a file beside ``path``, renamed over it once written: never a file cut short by a kill."""
-    tmp = path.with_name(f".{path.name}.partial")
-    try:
-        tmp.write_text(text, encoding="ascii")
-        tmp.replace(path)
-    finally:
-        tmp.unlink(missing_ok=True)
+def _write_ascii(path: Path, text: str) -> None:
+    """``text`` into ``path``, replaced whole (:func:`~groundsim.evaluation.out_dir.write_replacing`)."""
+    write_replacing(path, lambda tmp: tmp.write_text(text, encoding="ascii"))
 
 
 def cmd_dataset(args) -> int:

@@ -13,10 +13,11 @@ import os
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from onboard.core.errors import ConfigError
 
-__all__ = ["holds_files", "make_out_dir", "refuse_foreign_out"]
+__all__ = ["holds_files", "make_out_dir", "refuse_foreign_out", "write_replacing"]
 
 
 def make_out_dir(path, option: str = "--out") -> Path:
@@ -63,3 +64,17 @@ def refuse_foreign_out(path, earlier: Callable[[Path], bool], what: str, mark: s
         f"{option} {out}: not empty and not an earlier {what}'s folder (no {mark}); {what} replaces an earlier "
         f"run's files in its folder, so it writes only into a new or empty one or its own: give another {option}"
     )
+
+
+def write_replacing(path: Path, write: Callable[[Path], Any]) -> Any:
+    """``write(tmp)`` into a file beside ``path`` (same suffix), renamed over ``path`` once written; returns what
+    ``write`` returns.  A write stopped half way (a kill, a full disk) leaves the earlier file whole, not one
+    cut short that reads as complete; ``path`` is left as it is when ``write`` made no file."""
+    tmp = path.with_name(f".{path.stem}.partial{path.suffix}")
+    try:
+        result = write(tmp)
+        if tmp.exists():
+            os.replace(tmp, path)
+        return result
+    finally:
+        tmp.unlink(missing_ok=True)
