@@ -49,10 +49,12 @@ def _kill(pe: ProcessEstimator) -> None:
 
 
 def _started(pe: ProcessEstimator) -> None:
-    """Wait (bounded) until the replacement being spawned is there for the next add to take."""
-    assert pe._starting is not None
-    pe._starting[0].join(JOIN_S)
-    assert not pe._starting[0].is_alive()
+    """Wait (bounded) until the replacement being spawned is there for the next add to take (a spawn that was
+    done when the frame looked was taken by it already)."""
+    starting = pe._starting
+    if starting is not None:
+        starting[0].join(JOIN_S)
+        assert not starting[0].is_alive()
 
 
 def _fill_window(pe, obs, K) -> None:
