@@ -1,5 +1,6 @@
 """Copies of a daemon recording (MCAP) with messages edited, dropped or its configuration changed: the damaged and
-altered recordings the replay tests feed ``python -m onboard.replay`` and ``groundsim report``."""
+altered recordings the replay tests feed ``python -m onboard.replay`` and ``groundsim report``; a recording's
+top-level records (:func:`top_records`), for the tests that damage them one by one."""
 
 from __future__ import annotations
 
@@ -65,3 +66,19 @@ def rewrite_recording(
                 w.add_metadata(rec.name, meta)
         w.finish()
     return edited_log_ns
+
+
+def top_records(data: bytes) -> list[tuple[int, int, int]]:
+    """``(byte, opcode, length)`` of each top-level record of an MCAP file's ``data``, from its header to its footer,
+    walked by each record's head (in a file cut short: to the last whole head)."""
+    import struct
+
+    out = []
+    pos = 8  # after the magic
+    while pos + 9 <= len(data):
+        opcode, length = struct.unpack_from("<BQ", data, pos)
+        out.append((pos, opcode, length))
+        if opcode == 0x02:  # the footer
+            break
+        pos += 9 + length
+    return out

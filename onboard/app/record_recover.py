@@ -6,8 +6,8 @@ was killed has whole records up to its last finished chunk, then part of one, an
 (``mcap.stream_reader.StreamReader``, :mod:`onboard.app.replay`) reads it; the indexed reader most tools open
 (``mcap.reader.make_reader(f).iter_messages()``, Foxglove) reads the footer first and refuses it.
 
-This reads the input's whole records (:func:`whole_length`: each record's length walked from the header on, up to
-the first that runs past the end of the file) with the `mcap` package's stream reader, and writes them with the
+This reads the input's records through :class:`onboard.io.mcap_read.RecordWalk` (each read within its own length
+from the header on, up to the footer or the first that runs past the end of the file), and writes them with the
 package's writer: the header's profile and library, every schema, channel, metadata record and attachment, and
 every message byte for byte (data, log time, publish time, sequence), in the input's order, into uncompressed
 chunks with the full summary (chunk, metadata and attachment indexes, statistics).  The part-written record at the
@@ -17,13 +17,16 @@ The output is written to a temporary file beside ``OUT`` and renamed over it onc
 (:mod:`onboard.app.output_files`): an interrupted recovery (Ctrl-C, SIGTERM: one line, exit 130) leaves no
 half-written ``OUT`` and no temporary file.
 
-Damage is told from a cut (:func:`onboard.io.mcap_read.damage_at`): a file that ends with its footer was not cut;
-a record whose opcode no MCAP record has, or that fits in the file yet cannot be read, is damage (its structure:
-the recorder writes chunks without CRCs, so a flipped bit inside a message's data is not seen); so is a chunk
-holding another record than a schema, channel or message, or one whose records run past it, or whose message
-indexes count other messages than it holds (:class:`onboard.io.mcap_read.ChunkIndexCheck`).  A damaged input is
-refused unless ``--skip-damaged``: then a finished file is recovered chunk by chunk through its summary's chunk
-index (a damaged chunk left out, the others kept), any other up to the damage, and each part left out is said on
+Damage is told from a cut as :mod:`onboard.io.mcap_read` tells it: a record that runs past the end of a file
+without its footer is where it was cut; anything else a reader cannot take is damage -- a record that cannot be read
+within its length, one where the MCAP specification puts no such record (a summary record, a second header, an
+opcode no record has or a private one before the data end record; a data record after it), a chunk holding another
+record than a schema, channel or message or whose message indexes disagree with it, a summary that counts other
+messages or chunks than the data section holds (its structure: the recorder writes chunks without CRCs, so a
+flipped bit inside a message's data is not seen).  A damaged input is refused unless ``--skip-damaged``: then a
+finished file whose data section is damaged is recovered chunk by chunk through its summary's chunk index (a
+damaged chunk left out, the others kept), one whose summary alone is damaged keeps every record of its data
+section (the writer makes a new summary), any other is kept up to the damage; each part left out is said on
 stderr (exit 3).
 
 Refused, with one line naming the file (exit 2): an input that cannot be read, is not MCAP (its first bytes are
@@ -37,12 +40,14 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import itertools
 import os
 import sys
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, BinaryIO
+
+from mcap.opcode import Opcode
+from mcap.records import Header, Message
 
 from onboard.app.cli_args import OneLineParser, sigterm_as_interrupt
 from onboard.app.output_files import create_beside, output_target, same_file_clash
@@ -51,10 +56,12 @@ from onboard.io.mcap_chunks import MCAP_MAGIC, RECORD_HEAD
 from onboard.io.mcap_read import (
     KNOWN_OPCODES,
     ChunkIndexCheck,
+    RecordDamage,
+    RecordWalk,
     chunk_records,
-    damage_at,
     footer_intact,
-    record_overran,
+    read_record,
+    record_name,
 )
 
 __all__ = ["Recovered", "whole_length", "recover", "build_parser", "main"]
@@ -86,7 +93,7 @@ def whole_length(f: BinaryIO, size: int) -> tuple[int, bool]:
     positioned anywhere) ends, walking each record's ``(opcode, length)`` from the header on; ``complete`` when it
     ends with its footer and the closing magic (then ``end`` is ``size``).  The walk stops before a record whose
     length runs past the end of the file or whose opcode no MCAP record has: where the file was cut, or damaged
-    (:func:`~onboard.io.mcap_read.damage_at` tells which)."""
+    (:class:`~onboard.io.mcap_read.RecordWalk` tells which)."""
     pos = len(MCAP_MAGIC)
     while pos + RECORD_HEAD.size <= size:
         f.seek(pos)
@@ -101,31 +108,6 @@ def whole_length(f: BinaryIO, size: int) -> tuple[int, bool]:
             return end, False
         pos = end
     return pos, False
-
-
-class _Prefix:
-    """The first ``limit`` bytes of ``f`` as a stream (``read`` only): the reader sees a file that ends where the
-    last whole record does.  ``count``: the bytes read so far (where the next record starts, between two)."""
-
-    def __init__(self, f: BinaryIO, limit: int) -> None:
-        self._f, self._left = f, limit
-        self.count = 0
-
-    def read(self, n: int = -1) -> bytes:
-        if n < 0 or n > self._left:
-            n = self._left
-        data = self._f.read(n)
-        self._left -= len(data)
-        self.count += len(data)
-        return data
-
-
-class _Damaged(Exception):
-    """A part of the input that cannot be read: ``what`` says which and why, ``at`` the byte it starts at."""
-
-    def __init__(self, what: str, at: int) -> None:
-        super().__init__(what)
-        self.what, self.at = what, at
 
 
 class _Output:
@@ -173,129 +155,77 @@ class _Output:
             self.attachments += 1
 
 
-def _streamed(f: BinaryIO, end: int, src: str) -> Iterator[tuple[int, list]]:
-    """The whole records of ``f`` up to ``end`` as ``(byte, records)``: a top-level record alone, or a chunk's records
-    together once the message indexes after it have checked them (:class:`~onboard.io.mcap_read.ChunkIndexCheck`);
-    :class:`_Damaged` at the first part that cannot be read."""
-    from mcap.records import Chunk, Header, MessageIndex
-    from mcap.stream_reader import StreamReader
-
-    prefix = _Prefix(f, end)
-    reader = StreamReader(prefix, emit_chunks=True).records  # type: ignore[arg-type]
-    check = ChunkIndexCheck(src)
-    pending: tuple[int, list] | None = None  # a chunk's records, held until its indexes are read
-    seen_header = False
-    while True:
-        at = prefix.count
-        index_failed = False
-        try:
-            record = next(reader, None)
-            if record is None:
-                break
-            if isinstance(record, Header):
-                seen_header = True
-            elif not seen_header:
-                raise InputError(f"{src}: not a readable MCAP file (a {type(record).__name__} before its header)")
-            overran = record_overran(f, at, prefix.count)
-            if overran is not None:
-                raise InputError(f"{src}: damaged: {overran}")
-            index_failed = True
-            check.add(record, at)
-            index_failed = False
-            if isinstance(record, Chunk):
-                records = chunk_records(record, f"{src}: the chunk at byte {at}")
-                check.chunk(records, at)
-        except InputError as exc:
-            if seen_header and "damaged" in str(exc):
-                what = str(exc).removeprefix(f"{src}: ").replace("damaged: ", "")
-                if pending is not None and not index_failed:
-                    # the chunk held back is whole and its indexes so far agree: the damage is after it
-                    yield pending
-                    pending = None
-                raise _Damaged(what, pending[0] if pending else at) from None
-            raise
-        except Exception as exc:  # noqa: BLE001 - whatever the reader raised inside the whole records
-            if type(exc).__name__ == "EndOfFile":
-                # the whole records end between two records: read to the last (none before the header: the file is
-                # cut inside it, which the caller says as such, not as damage)
-                break
-            if pending is not None:
-                yield pending
-                pending = None
-            raise _Damaged(f"the record at byte {at} cannot be read: {type(exc).__name__}: {exc}", at) from None
-        if isinstance(record, MessageIndex):
-            continue
-        if pending is not None:
-            yield pending
-            pending = None
-        if isinstance(record, Chunk):
-            pending = (at, records)
-        else:
-            yield at, [record]
-    if pending is not None:
-        yield pending
-
-
 def _summary(f: BinaryIO) -> Any:
-    """The file's summary (``mcap.reader``'s), or None when it has none or it cannot be read (damaged too)."""
+    """The file's summary (``mcap.reader``'s) when it can guide a recovery chunk by chunk: it indexes chunks, as many
+    as its statistics count; else None (none, or it cannot be read: damaged too)."""
     from mcap.reader import make_reader
 
     try:
         f.seek(0)
-        return make_reader(f).get_summary()
+        summary = make_reader(f).get_summary()
     except Exception:  # noqa: BLE001 - a damaged summary: the records before the damage are read instead
         return None
+    if summary is None or not summary.chunk_indexes:
+        return None
+    if summary.statistics is not None and summary.statistics.chunk_count != len(summary.chunk_indexes):
+        return None
+    return summary
 
 
-def _indexed(f: BinaryIO, src: str, summary: Any, output: _Output, dropped: list[str]) -> None:
+def _indexed_chunk(f: BinaryIO, ci: Any) -> tuple[list, str | None]:
+    """The records of the chunk ``ci`` (a chunk index) points at, read alone and checked by the message indexes after
+    it, and what is wrong with those indexes when they cannot check it (a record among them that is not one, or
+    cannot be read, or a channel without one): the chunk is whole, its indexes are not, and the writer makes new ones.
+    :class:`RecordDamage` when the chunk is not there or its indexes disagree with it."""
+    start = ci.chunk_start_offset
+    head = os.pread(f.fileno(), RECORD_HEAD.size, start)
+    opcode, length = RECORD_HEAD.unpack(head) if len(head) == RECORD_HEAD.size else (0, 0)
+    if opcode != Opcode.CHUNK or RECORD_HEAD.size + length != ci.chunk_length:
+        raise RecordDamage(f"not the chunk its index says ({record_name(opcode)} at byte {start})", start)
+    records = chunk_records(read_record(f, start, opcode, length), start)
+    check = ChunkIndexCheck(records, start)
+    pos, stop = start + ci.chunk_length, start + ci.chunk_length + ci.message_index_length
+    while pos < stop:
+        head = os.pread(f.fileno(), RECORD_HEAD.size, pos)
+        opcode, length = RECORD_HEAD.unpack(head) if len(head) == RECORD_HEAD.size else (0, stop)
+        if opcode != Opcode.MESSAGE_INDEX:
+            return records, f"its message indexes: {record_name(opcode)} at byte {pos}, not a message index"
+        if pos + RECORD_HEAD.size + length > stop:
+            return (
+                records,
+                f"its message indexes: the one at byte {pos} runs past their {ci.message_index_length} bytes",
+            )
+        try:
+            index = read_record(f, pos, opcode, length)
+        except RecordDamage as exc:
+            return records, f"its message indexes: {exc.what}"
+        check.add(index, pos)
+        pos += RECORD_HEAD.size + length
+    return records, check.unindexed()
+
+
+def _indexed(f: BinaryIO, summary: Any, output: _Output, dropped: list[str]) -> None:
     """Every chunk the summary indexes, each read and checked alone: one that cannot be read is left out and said in
-    ``dropped``, the others written; then the metadata and attachments it indexes.  For a finished file: its summary
-    says where every chunk is, so damage costs the chunks it hit, not the rest of the file."""
-    import io
-
-    from mcap.exceptions import EndOfFile
-    from mcap.records import Chunk, MessageIndex
-    from mcap.stream_reader import StreamReader
-
+    ``dropped``, the others written (one whose message indexes alone are damaged too, said); then the metadata and
+    attachments it indexes.  For a finished file: its summary says where every chunk is, so damage costs the chunks
+    it hit, not the rest of the file."""
     # the chunks' own schema and channel records first; the summary's copies (damage there goes unnoticed by any
     # reader) only for a channel no chunk declared
     output.summary_schemas, output.summary_channels = dict(summary.schemas), dict(summary.channels)
     chunks = sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset)
     for k, ci in enumerate(chunks, start=1):
-        size = ci.chunk_length + ci.message_index_length
-        raw = os.pread(f.fileno(), size, ci.chunk_start_offset)
-        where = f"{src}: the chunk at byte {ci.chunk_start_offset}"
-        check = ChunkIndexCheck(where)
+        where = (
+            f"chunk {k} of {len(chunks)} at byte {ci.chunk_start_offset} (log times {ci.message_start_time} to "
+            f"{ci.message_end_time} ns)"
+        )
         try:
-            stream = io.BytesIO(raw)
-            records: list = []
-            reader = StreamReader(stream, skip_magic=True, emit_chunks=True).records
-            with contextlib.suppress(EndOfFile):
-                for i in itertools.count():
-                    at = ci.chunk_start_offset + stream.tell()
-                    record = next(reader, None)
-                    if record is None:
-                        break
-                    if i == 0:
-                        if not isinstance(record, Chunk) or stream.tell() != ci.chunk_length:
-                            raise InputError(f"{where}: damaged: not the chunk its index says")
-                        records = chunk_records(record, where)
-                        check.chunk(records, ci.chunk_start_offset)
-                    elif isinstance(record, MessageIndex):
-                        check.add(record, at)
-            if len(raw) != size or not records and ci.message_index_offsets:
-                raise InputError(f"{where}: damaged: cut short")
-        except Exception as exc:  # noqa: BLE001 - whatever this chunk's bytes raise: it alone is left out
-            why = (
-                str(exc).removeprefix(f"{where}: ").replace("damaged: ", "")
-                if isinstance(exc, InputError)
-                else f"{type(exc).__name__}: {exc}"
-            )
-            dropped.append(
-                f"chunk {k} of {len(chunks)} at byte {ci.chunk_start_offset} (log times {ci.message_start_time} to "
-                f"{ci.message_end_time} ns) left out: {why}"
-            )
+            records, indexes_damaged = _indexed_chunk(f, ci)
+        except RecordDamage as exc:
+            dropped.append(f"{where} left out: {exc.what.removeprefix(f'the chunk at byte {ci.chunk_start_offset}: ')}")
             continue
+        if indexes_damaged is not None:
+            n = sum(isinstance(r, Message) for r in records)
+            dropped.append(f"{where}: kept ({n} messages) without the check of {indexes_damaged}")
         try:
             for record in records:
                 output.add(record)
@@ -304,23 +234,25 @@ def _indexed(f: BinaryIO, src: str, summary: Any, output: _Output, dropped: list
                 f"chunk {k} of {len(chunks)} at byte {ci.chunk_start_offset}: the records from one naming id "
                 f"{exc.args[0]!r}, which neither it nor the summary declares, left out"
             )
-    indexed = [("the metadata record", i) for i in summary.metadata_indexes]
-    indexed += [("the attachment", i) for i in summary.attachment_indexes]
-    for what, index in indexed:  # each record its index points at, read alone
+    indexed = [("the metadata record", i, Opcode.METADATA) for i in summary.metadata_indexes]
+    indexed += [("the attachment", i, Opcode.ATTACHMENT) for i in summary.attachment_indexes]
+    for what, index, kind in indexed:  # each record its index points at, read alone
         try:
-            raw = os.pread(f.fileno(), index.length, index.offset)
-            output.add(next(StreamReader(io.BytesIO(raw), skip_magic=True).records))
-        except Exception as exc:  # noqa: BLE001 - whatever these bytes raise: this record alone is left out
-            dropped.append(f"{what} {index.name!r} at byte {index.offset} left out: {type(exc).__name__}: {exc}")
+            head = os.pread(f.fileno(), RECORD_HEAD.size, index.offset)
+            opcode, length = RECORD_HEAD.unpack(head) if len(head) == RECORD_HEAD.size else (0, 0)
+            if opcode != kind or RECORD_HEAD.size + length != index.length:
+                raise RecordDamage(f"{record_name(opcode)} of {RECORD_HEAD.size + length} bytes there", index.offset)
+            output.add(read_record(f, index.offset, opcode, length))
+        except RecordDamage as exc:
+            dropped.append(f"{what} {index.name!r} at byte {index.offset} left out: {exc.what}")
 
 
 def recover(src: str, dst_fd: int, skip_damaged: bool = False) -> Recovered:
     """Stream ``src``'s whole records into a complete MCAP file written to the open descriptor ``dst_fd`` (closed
     here).  Raises :class:`InputError` (one line naming ``src``) for an input it refuses (module docstring).  With
     ``skip_damaged`` a damaged input is recovered but for its damage (``Recovered.dropped`` says what was left out):
-    a finished file chunk by chunk through its summary, any other up to the damage."""
-    from mcap.records import DataEnd, Header
-
+    a finished file chunk by chunk through its summary (damage in the summary alone costs nothing but it: the data
+    section read is kept), any other up to the damage."""
     try:
         f = open(src, "rb")
     except OSError as exc:
@@ -332,54 +264,52 @@ def recover(src: str, dst_fd: int, skip_damaged: bool = False) -> Recovered:
         if head != MCAP_MAGIC:
             what = "the file is empty" if not head else f"it starts with {head!r}, not the MCAP magic"
             raise InputError(f"{src}: not an MCAP file ({what})")
-        end, complete = whole_length(f, size)
-        damage = None if complete else damage_at(f, size, end)
-        if damage is not None and not skip_damaged:
-            raise InputError(f"{src}: damaged: {damage}{_SKIP_HINT}")
+        walk = RecordWalk(f, src)
         dropped: list[str] = []
         output: _Output | None = None
-        finished = footer_intact(f, size)
-        # a finished file is recovered chunk by chunk through its summary's index (damage costs the chunks it hit)
-        summary = _summary(f) if skip_damaged and finished else None
-        f.seek(0)
         header = None
+        readable = size
         try:
-            for _at, records in _streamed(f, end, src):
-                if isinstance(records[0], Header):
-                    header = records[0]
-                    if summary is not None and summary.chunk_indexes:
-                        break  # a finished file: read chunk by chunk through its summary, below
+            for top in walk:
+                if isinstance(top.record, Header):
+                    header = top.record
                     output = _Output(out, header.profile, header.library)
                     continue
-                if isinstance(records[0], DataEnd):
-                    break  # the summary section follows: the writer makes its own
                 assert output is not None
-                for record in records:
+                for record in top.records:
                     output.add(record)
-        except _Damaged as exc:
-            if not skip_damaged:
-                raise InputError(f"{src}: damaged: {exc.what}{_SKIP_HINT}") from None
-            dropped.append(f"from byte {exc.at} to the end ({size - exc.at} bytes) left out: {exc.what}")
+        except RecordDamage as exc:
+            if header is None or not skip_damaged:
+                raise InputError(f"{src}: damaged: {exc.what}{_SKIP_HINT if header else ''}") from None
+            # a finished file whose data section is damaged: its summary says where every chunk is
+            summary = None if exc.in_summary or not footer_intact(f, size) else _summary(f)
+            if summary is not None:
+                out.seek(0)
+                out.truncate()
+                output = _Output(out, header.profile, header.library)
+                _indexed(f, summary, output, dropped)
+                if not dropped:
+                    dropped.append(f"{exc.what}: every chunk its summary indexes read whole")
+            elif exc.in_summary:
+                dropped.append(f"its summary, from byte {exc.at} (a new one is written): {exc.what}")
+            else:
+                dropped.append(f"from byte {exc.at} to the end ({size - exc.at} bytes) left out: {exc.what}")
+                readable = exc.at
         except KeyError as exc:
             raise InputError(
                 f"{src}: not a readable MCAP file (a record names {exc.args[0]!r}, which no earlier record defines)"
             ) from None
-        if header is None:
+        if header is None or output is None:
             raise InputError(f"{src}: cut short before its header record ({size} bytes): nothing to recover")
-        if output is None:  # skip_damaged on a finished file
-            output = _Output(out, header.profile, header.library)
-            _indexed(f, src, summary, output, dropped)
-        elif damage is not None:
-            dropped.append(f"from byte {end} to the end ({size - end} bytes) left out: {damage}")
         output.writer.finish()
-        complete = complete or finished
+        complete = walk.complete or footer_intact(f, size)
     return Recovered(
         output.messages,
         len(output.channel_ids),
         len(output.schema_ids) - 1,
         output.metadata,
         output.attachments,
-        end,
+        walk.cut_at if walk.cut_at is not None else readable,
         size,
         complete,
         tuple(dropped),

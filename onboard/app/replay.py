@@ -44,10 +44,12 @@ and nothing is written); 3 ``--compare`` found a difference; 130 interrupted (Ct
 how many frames were replayed and what was written).
 
 A file cut short (a killed daemon) is read up to its last complete chunk (the summary says so); one cut before its
-first message is refused.  A message that does not decode (JSON that does not parse or lacks a field replay reads,
-a RawImage that is not one) is refused in one line naming the file, the topic, the message's index on that topic
-(from 0) and its log time: a replay that skipped it would not be the flight's (a frame left out changes every
-track after it), and the flight report (:func:`load_recording`) refuses it alike.
+first message is refused, and so is one whose structure is damaged (a record where the MCAP layout has none, a chunk
+its message indexes disagree with, a summary that counts other messages or chunks than the file holds:
+:mod:`onboard.io.mcap_read`), naming the byte.  A message that does not decode (JSON that does not parse or lacks a
+field replay reads, a RawImage that is not one) is refused in one line naming the file, the topic, the message's
+index on that topic (from 0) and its log time: a replay that skipped it would not be the flight's (a frame left out
+changes every track after it), and the flight report (:func:`load_recording`) refuses it alike.
 """
 
 from __future__ import annotations
