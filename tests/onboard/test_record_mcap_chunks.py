@@ -105,3 +105,46 @@ def test_pieces_read_back_as_one_message(tmp_path):
         msgs = [m for _s, _c, m in make_reader(f).iter_messages()]
     assert [m.sequence for m in msgs] == list(range(7))
     assert all(m.data == b"head" + px.tobytes() for m in msgs)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    calls=st.lists(_call, max_size=40),
+    chunk_size=st.sampled_from([1, 1000, 64 * 1024]),
+    compression=st.sampled_from(["none", "lz4", "zstd"]),
+    writer=st.sampled_from(["ours", "theirs"]),
+    cut=st.floats(0.0, 1.0),
+)
+def test_every_file_written_and_every_cut_of_it_passes_the_readers_layout_checks(
+    tmp_path_factory, calls, chunk_size, compression, writer, cut
+):
+    """The structure replay's and record_recover's reader hold a file to (onboard.io.mcap_read) is the one both writers
+    write: a finished file reads whole, as the package's indexed reader reads it; one cut at any byte after its magic
+    reads as cut, the messages of its whole chunks first."""
+    from onboard.io.mcap_read import read_recording
+
+    folder = tmp_path_factory.mktemp("layout")
+    path = folder / "f.mcap"
+    if writer == "ours":
+        data = _ours(path, calls, chunk_size, compression, False)
+    else:
+        path.write_bytes(data := _theirs(calls, chunk_size, compression, False))
+    with open(path, "rb") as f:
+        expected = [
+            (c.topic, m.log_time, m.sequence, m.data) for _s, c, m in make_reader(f).iter_messages(log_time_order=False)
+        ]
+
+    def read(p) -> tuple[list, str | None]:
+        msgs, truncated = [], None
+        for m in read_recording(str(p)):
+            if isinstance(m, dict):
+                truncated = m.get("truncated", truncated)
+            else:
+                msgs.append((m.topic, m.log_time_ns, m.sequence, m.data))
+        return msgs, truncated
+
+    assert read(path) == (expected, None)
+    size = 8 + int((len(data) - 9) * cut)
+    (folder / "cut.mcap").write_bytes(data[:size])
+    msgs, truncated = read(folder / "cut.mcap")
+    assert msgs == expected[: len(msgs)] and truncated == f"it ends at byte {size}"
