@@ -336,8 +336,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--skip-damaged",
         action="store_true",
-        help="recover a damaged input but for its damage: a finished file chunk by chunk (a damaged chunk left out), "
-        "any other up to the damage; what was left out is said on stderr (exit 3)",
+        help="recover a damaged input but for its damage: a finished file chunk by chunk (a damaged chunk left out; "
+        "damage in its summary alone costs no message: a new one is written), any other up to the damage; what was "
+        "left out is said on stderr (exit 3)",
     )
     return p
 
