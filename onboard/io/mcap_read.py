@@ -6,12 +6,16 @@ it stands (:class:`LayoutCheck`).  :func:`read_recording` gives each message wit
 that a frame (:class:`FrameRef`) is read again from there when used instead of held in memory.  The record layout is
 :mod:`onboard.io.mcap_chunks`'.
 
-A cut is told from damage: a file cut short (a killed daemon) ends in a record whose length runs past the end of a
-file without a footer, and is read up to it; anything else a reader cannot take is damage, refused naming the byte
-(:class:`RecordDamage`).  The layout the checks hold a file to is the specification's
+A cut is told from damage: a file cut short (a killed daemon) ends in a record whose length runs past the end of the
+file, and is read up to it.  That record's own fields must run past the end too (the writers put nothing after a
+record's fields: a cut cuts them), its length must be one the mcap package reads (up to 4 GiB), and the file must
+not end with the closing magic (the last thing a writer writes).  Anything else a reader cannot take is damage,
+refused naming the byte (:class:`RecordDamage`) and the record before it (a damaged length there sends a reader into
+the middle of other bytes).  The layout the checks hold a file to is the specification's
 (https://mcap.dev/spec#file-structure), as irtrack's writers (the recorder's
 :class:`~onboard.io.mcap_chunks.ChunkWriter`, the `mcap` package's writer record_recover writes with) write it:
 
+- a footer of 20 bytes and a data end record of 4 (the specification says they will not grow);
 - the header first; in the data section only schemas, channels, messages, chunks, message indexes, attachments,
   metadata and, last, the data end record; after it only the summary (schemas, channels, statistics, chunk,
   attachment and metadata indexes, grouped by kind), then summary offsets, then the footer and the closing magic.
@@ -109,6 +113,10 @@ _SUMMARY_OPCODES = frozenset(
         Opcode.STATISTICS,
     )
 )
+#: the longest record read (``mcap.stream_reader.StreamReader``'s default ``record_size_limit``)
+_RECORD_LIMIT = 4 * 2**30
+#: the records the specification says will not be extended (https://mcap.dev/spec#records), by their lengths
+_FIXED_LENGTHS: dict[int, int] = {Opcode.FOOTER: 8 + 8 + 4, Opcode.DATA_END: 4}
 _NAMES: dict[int, str] = {
     Opcode.HEADER: "a header",
     Opcode.FOOTER: "a footer",
@@ -245,6 +253,13 @@ def footer_intact(f, size: int) -> bool:
     return opcode == Opcode.FOOTER and length == 20 and tail.endswith(MCAP_MAGIC)
 
 
+def _ends_closed(f, size: int) -> bool:
+    """Whether the file ``f`` (``size`` bytes) ends with the closing magic, as only a finished file does (its writer
+    writes the magic last): a record of it that runs past the end, or a last one cut short, was damaged, not cut."""
+    n = len(MCAP_MAGIC)
+    return size >= 2 * n + RECORD_HEAD.size and os.pread(f.fileno(), n, size - n) == MCAP_MAGIC
+
+
 class _RunsPast(Exception):
     """A record's fields run past the length its head gives."""
 
@@ -283,6 +298,20 @@ def read_record(f: BinaryIO, start: int, opcode: int, length: int) -> Any:
     except Exception as exc:  # noqa: BLE001 - whatever its fields raise (a string that is not UTF-8, ...): damaged
         why = f"{type(exc).__name__}: {exc}"
     raise RecordDamage(f"the record at byte {start} cannot be read: {why}", start)
+
+
+def _fields_fit(f: BinaryIO, start: int, opcode: int, available: int) -> bool:
+    """Whether the fields of the record at byte ``start`` (``opcode``), whose length runs past the end of the file,
+    all lie in the ``available`` bytes after its head: the writers put nothing after a record's fields, so a cut
+    cuts them; a record whose fields end within the file had its length damaged.  A message's data is as long as
+    its record says: it always runs past."""
+    if opcode == Opcode.MESSAGE:
+        return False
+    try:
+        read_record(f, start, opcode, available)
+    except RecordDamage:
+        return False
+    return True
 
 
 def chunk_records(chunk: Chunk, start: int) -> list:
@@ -375,12 +404,13 @@ class LayoutCheck:
     """The top-level records of one MCAP file, fed in file order, checked where each stands (the module docstring's
     rules): :meth:`head` before a record is read (its opcode, there), :meth:`add` once it is (what it counts and
     where it points), :meth:`end` when the file has been read to its footer or to its cut.  No I/O: the caller
-    reads.  :attr:`data_end`: the byte after the data end record, once read."""
+    reads.  :attr:`data_end`: the byte after the data end record, once read; :attr:`last`: the opcode of the last
+    record :meth:`head` let begin."""
 
     def __init__(self) -> None:
         self.section = "header"  # then data, summary (after the data end record), offsets, end (the footer read)
         self.data_end: int | None = None
-        self._prev = 0  # the previous record's opcode
+        self.last = 0  # the opcode of the last record :meth:`head` let begin
         self._groups: dict[int, tuple[int, int]] = {}  # a summary group's opcode -> its first byte, the byte after it
         self._group = 0
         self._offsets_start: int | None = None
@@ -401,6 +431,9 @@ class LayoutCheck:
                 )
             return f"the record at byte {start} has opcode {opcode:#04x}, which no MCAP record has"
         name, section = record_name(opcode), self.section
+        fixed = _FIXED_LENGTHS.get(opcode)
+        if fixed is not None and length != fixed:
+            return f"the record at byte {start} is {name} of {length} bytes, not {fixed}: that record never grows"
         if section == "header":
             if opcode != Opcode.HEADER:
                 return f"its first record, at byte {start}, is {name}, not a header"
@@ -412,10 +445,10 @@ class LayoutCheck:
                 return f"the record at byte {start} is {name}, before the data section's end (its data end record)"
             if opcode not in _DATA_OPCODES:
                 return f"the record at byte {start} is {name}, which belongs after the data section's end, not in it"
-            if opcode == Opcode.MESSAGE_INDEX and self._prev not in (Opcode.CHUNK, Opcode.MESSAGE_INDEX):
+            if opcode == Opcode.MESSAGE_INDEX and self.last not in (Opcode.CHUNK, Opcode.MESSAGE_INDEX):
                 return (
                     f"the record at byte {start} is {name}, which follows a chunk or another message index, "
-                    f"not {record_name(self._prev)}"
+                    f"not {record_name(self.last)}"
                 )
             if opcode == Opcode.DATA_END:
                 self.section, self.data_end = "summary", start + RECORD_HEAD.size + length
@@ -444,7 +477,7 @@ class LayoutCheck:
                     f"the record at byte {start} is {name}, among the summary offsets (from byte "
                     f"{self._offsets_start} only more of them and the footer come)"
                 )
-        self._prev = opcode
+        self.last = opcode
         return None
 
     def add(self, record: Any, start: int, end: int, records: list) -> None:
@@ -592,45 +625,65 @@ class RecordWalk:
         pos = len(MCAP_MAGIC)
         pending: TopRecord | None = None  # a chunk, given once its message indexes have checked it
         index: ChunkIndexCheck | None = None
+        last = pos  # the last record's byte
         while True:
             head = os.pread(f.fileno(), RECORD_HEAD.size, pos)
             if len(head) < RECORD_HEAD.size:
+                if _ends_closed(f, size):
+                    raise RecordDamage(
+                        f"the record at byte {last} ({record_name(layout.last)}) ends at byte {pos}, {size - pos} bytes "
+                        "before the end of the file, which ends with its closing magic: it was not cut, and its footer "
+                        "is not where the records end",
+                        last if pending is None else pending.start,
+                        layout.data_end is not None,
+                    )
                 break
             opcode, length = RECORD_HEAD.unpack(head)
             unindexed = None
             if index is not None and opcode != Opcode.MESSAGE_INDEX:
                 unindexed = index.unindexed()
                 if unindexed is not None:
-                    unindexed += f" (its indexes end at byte {pos}, where {record_name(opcode)} follows)"
+                    unindexed += f" (after the record at byte {last} comes {record_name(opcode)}, at byte {pos})"
                 else:
                     assert pending is not None
                     yield pending
                     pending = index = None
             costs = pending.start if pending is not None else pos
-            first = layout.section == "header"
-            why = layout.head(opcode, pos, length) or unindexed
+            first, before = layout.section == "header", record_name(layout.last)
+            why = layout.head(opcode, pos, length)
+            if why is not None and first:
+                raise InputError(f"{self._src}: not a readable MCAP file ({why})")
             if why is not None:
-                if first:
-                    raise InputError(f"{self._src}: not a readable MCAP file ({why})")
+                # a damaged length in the record before sends a reader here, into the middle of other bytes
+                why += f" (the record before it: {before} at byte {last})"
+            why = why or unindexed
+            if why is not None:
                 raise RecordDamage(why, costs, self._in_summary(opcode))
             end = pos + RECORD_HEAD.size + length
             if end > size:
-                if not footer_intact(f, size):
+                if _ends_closed(f, size):
+                    why = "the file ends with its closing magic: it was not cut"
+                elif length > _RECORD_LIMIT:
+                    why = "no record is that long: the mcap package refuses to read one over 4 GiB"
+                elif _fields_fit(f, pos, opcode, size - pos - RECORD_HEAD.size):
+                    why = "its fields end within the file: a cut would have cut them"
+                else:
                     break  # the file was cut in this record
                 raise RecordDamage(
-                    f"the record at byte {pos} says {length} bytes, past the end of the file, which ends with its "
-                    "footer: it was not cut",
+                    f"the record at byte {pos} says {length} bytes, past the end of the file, but {why} (the record "
+                    f"before it: {before} at byte {last})",
                     costs,
                     self._in_summary(opcode),
                 )
             try:
                 record = read_record(f, pos, opcode, length)
             except RecordDamage as exc:
-                raise RecordDamage(exc.what, costs, self._in_summary(opcode)) from None
+                what = f"{exc.what} (the record before it: {before} at byte {last})"
+                raise RecordDamage(what, costs, self._in_summary(opcode)) from None
             if isinstance(record, MessageIndex):
                 assert index is not None  # head() lets one follow a chunk or another message index only
                 index.add(record, pos)
-                pos = end
+                last, pos = pos, end
                 continue
             records = chunk_records(record, pos) if isinstance(record, Chunk) else [record]
             layout.add(record, pos, end, records)
@@ -643,7 +696,7 @@ class RecordWalk:
                     pending, index = top, ChunkIndexCheck(records, pos)
                 else:
                     yield top
-            pos = end
+            last, pos = pos, end
         self.cut_at = pos
         if pending is not None:  # its indexes read so far agree with it; the rest were cut
             yield pending

@@ -217,6 +217,62 @@ def test_a_recording_finished_or_cut_anywhere_reads_as_before(recording, tmp_pat
     assert _indexed(out) == expected
 
 
+#: id -> (the record's opcode, which one, the bit of its length flipped)
+LENGTHS = {
+    "footer_length_past_the_end": (Opcode.FOOTER, "first", 5),  # 20 -> 52 bytes
+    "footer_length_over_the_closing_magic": (Opcode.FOOTER, "first", 3),  # 20 -> 28: the magic read as its field
+    "data_end_length": (Opcode.DATA_END, "first", 0),  # 4 -> 5 bytes
+    "last_summary_offset_length_past_the_end": (Opcode.SUMMARY_OFFSET, "last", 5),  # 17 -> 49 bytes
+    "chunk_length_16_bytes_off": (Opcode.CHUNK, "middle", 4),
+}
+
+
+@pytest.mark.parametrize("case", list(LENGTHS))
+def test_a_flipped_length_bit_is_refused_naming_its_record_even_where_it_looks_like_a_cut(
+    recording, tmp_path, capsys, case
+):
+    """A finished file ends with its closing magic: a record whose length runs past the end of such a file, or short of
+    the footer, was damaged, not cut (a footer or data end record never grows: a longer one is damage too)."""
+    opcode, which, bit = LENGTHS[case]
+    data = bytearray(recording.read_bytes())
+    byte, _ = _at(data, opcode, which)
+    data[byte + 1 + bit // 8] ^= 1 << (bit % 8)
+    damaged, out = tmp_path / "damaged.mcap", tmp_path / "out.mcap"
+    damaged.write_bytes(bytes(data))
+    _refused_everywhere(capsys, damaged, out, byte)
+    full = _indexed(recording)
+    lost = _chunk_messages(recording, byte) if opcode == Opcode.CHUNK else []
+    assert recover(["--skip-damaged", str(damaged), str(out)]) == 3
+    assert _indexed(out) == [m for m in full if m not in lost]
+
+
+#: id -> (the record's opcode, which one, the bit of its length flipped), in a recording cut in its last chunk
+CUT_LENGTHS = {
+    "message_index_length_past_the_cut": (Opcode.MESSAGE_INDEX, "first", 24),  # its fields end before the cut
+    "metadata_length_over_4_gib": (Opcode.METADATA, "first", 40),
+}
+
+
+@pytest.mark.parametrize("case", list(CUT_LENGTHS))
+def test_a_flipped_length_bit_in_a_recording_cut_short_is_not_taken_for_its_cut(recording, tmp_path, capsys, case):
+    """A record whose length runs past the end of a file cut short is where the file was cut only if its own fields
+    run past it too (a cut cuts them) and the length is one a reader reads at all."""
+    opcode, which, bit = CUT_LENGTHS[case]
+    full = recording.read_bytes()
+    last, length = _at(full, Opcode.CHUNK, "last")
+    data = bytearray(full[: last + length // 2])
+    byte, _ = _at(data, opcode, which)
+    data[byte + 1 + bit // 8] ^= 1 << (bit % 8)
+    damaged, out = tmp_path / "damaged.mcap", tmp_path / "out.mcap"
+    damaged.write_bytes(bytes(data))
+    _refused_everywhere(capsys, damaged, out, byte)
+    (tmp_path / "cut.mcap").write_bytes(full[: last + length // 2])
+    assert recover(["--skip-damaged", str(damaged), str(out)]) == 3
+    kept = _indexed(out)
+    whole, _ = _streamed(tmp_path / "cut.mcap")
+    assert kept == whole[: len(kept)] and len(kept) < len(whole)
+
+
 def _edited(recording, tmp_path, edit) -> tuple:
     data = bytearray(recording.read_bytes())
     byte = edit(data)
