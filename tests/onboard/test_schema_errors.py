@@ -17,6 +17,7 @@ from onboard.core.errors import ConfigError, InputError, IrtrackError
 from onboard.core.irframe import IrFrameError
 from onboard.core.schema import SchemaError
 from onboard.io.mavlink_signing import SigningKeyError
+from onboard.io.mcap_read import RecordDamage
 from onboard.pipeline.frame_pipeline import FrameRejected
 
 REPO = Path(__file__).resolve().parents[2]
@@ -32,6 +33,7 @@ ERRORS = [
     FrameRejected("dims_mismatch", "frame 640 x 480, expected 640 x 512"),
     OutputError("out/track.csv", "Permission denied"),
     SigningKeyError("mavlink.signing_key_file", "a readable key file", "'/k': Permission denied"),
+    RecordDamage("a chunk's opcode 0x07 at byte 1357177, where the data section holds no message index", 1357177),
 ]
 
 
