@@ -11,15 +11,13 @@ from __future__ import annotations
 
 import struct
 
-import numpy as np
 import pytest
 
 from onboard.app.record_recover import main as recover
 from onboard.app.replay import load_recording
 from onboard.core.errors import InputError
 from onboard.io.mcap_read import read_recording
-from onboard.io.record import FlightRecorder, RecordConfig
-from tests.onboard.test_record import _frame, _pose, _track
+from tests.onboard.test_record_recover import _recording
 from tests.recording_edits import top_records
 
 mcap_reader = pytest.importorskip("mcap.reader")
@@ -30,19 +28,7 @@ from mcap.opcode import Opcode  # noqa: E402
 def recording(tmp_path_factory):
     """A finished recording of 40 frames with what the daemon records around them, in 64 KB chunks (7 of them)."""
     path = tmp_path_factory.mktemp("damage") / "flight.mcap"
-    rec = FlightRecorder(
-        RecordConfig(path=str(path), chunk_kb=64), vehicle="uav1", metadata={"config_yaml": "vehicle: uav1\n"}
-    )
-    rec.start()
-    for i in range(40):
-        fr = _frame(i, np.uint16)
-        rec.on_mavlink(bytes([0xFD, i]), "autopilot", ("127.0.0.1", 14550))
-        rec.on_frame(fr, 1_000 + i)
-        rec.on_frame_input(fr, 1_000 + i, True, _pose(fr.time_boot_us, i))
-        rec.on_track(_track(fr))
-        if i % 10 == 0:
-            rec.on_status(b'{"schema":"irtrack.status/1"}')
-    rec.close()
+    _recording(path, frames=40)
     assert sum(op == Opcode.CHUNK for _, op, _ in top_records(path.read_bytes())) >= 5
     return path
 

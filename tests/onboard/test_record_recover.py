@@ -19,13 +19,13 @@ from mcap.exceptions import McapError  # noqa: E402
 from mcap.writer import CompressionType, Writer  # noqa: E402
 
 
-def _recording(path) -> None:
-    """A recording of 60 frames with everything the daemon records around them, in 64 KB chunks."""
+def _recording(path, frames: int = 60) -> None:
+    """A recording of ``frames`` frames with everything the daemon records around them, in 64 KB chunks."""
     rec = FlightRecorder(
         RecordConfig(path=str(path), chunk_kb=64), vehicle="uav1", metadata={"config_yaml": "vehicle: uav1\n"}
     )
     rec.start()
-    for i in range(60):
+    for i in range(frames):
         fr = _frame(i, np.uint16)
         rec.on_mavlink(bytes([0xFD, i]), "autopilot", ("127.0.0.1", 14550))
         rec.on_frame(fr, 1_000 + i)
