@@ -305,9 +305,10 @@ def across_range_widened(cov_p_ned_m2, u_ned, range_m: float) -> np.ndarray:
     The solution's across-range covariance is its bearing's, taken at its own range ``r``: a target on that bearing
     at range ``r'`` is off the line by ``r'`` times the bearing's error.  Over the range spread the covariance
     claims (``sigma_r^2 = u' P u``, the floor included) the mean of ``r'^2`` is ``r^2 + sigma_r^2``, so the across
-    part scales by ``1 + sigma_r^2 / r^2``.  Without it a solution collapsed towards the camera (40 m for a target
-    at 180 m, range sigma 150 m) claims a few centimetres across the line where the target is metres off it: honest
-    by the trace, tens of sigma by its own ellipsoid.  Along the line nothing changes."""
+    part scales by ``1 + sigma_r^2 / r^2``.  Without it a solution collapsed towards the camera claims its bearing's
+    spread at its own short range across the line, where a target farther along it is off by its range times the
+    bearing error: honest by the trace (which the range sigma dominates), many sigma by its own ellipsoid.  Along
+    the line nothing changes."""
     P = np.asarray(cov_p_ned_m2, dtype=float)
     u = np.asarray(u_ned, dtype=float)
     r = float(range_m)
