@@ -22,6 +22,7 @@ Figures per run (all means over the window's points):
 from __future__ import annotations
 
 import math
+import os
 import time
 from dataclasses import dataclass
 
@@ -167,7 +168,7 @@ def run_cases(
 
         from groundsim.evaluation.parallel import init_worker
 
-        with mp.get_context("fork").Pool(workers, initializer=init_worker) as pool:
+        with mp.get_context("fork").Pool(workers, initializer=init_worker, initargs=(None, None, os.getpid())) as pool:
             for r in pool.imap(_run_one, jobs):
                 out.append(r)
                 if progress:

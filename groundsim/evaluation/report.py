@@ -26,6 +26,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import os
 import time
 from pathlib import Path
 
@@ -785,8 +786,9 @@ def _run_plots(tasks: list[tuple], workers: int) -> list[tuple[str, str]]:
         return [_plot_task(t) for t in tasks]
     from groundsim.evaluation.parallel import init_worker, mp_context
 
-    # the workers ignore SIGINT, as the eval's own: a Ctrl-C to the terminal's group must not kill a plot
-    with mp_context().Pool(workers, initializer=init_worker) as pool:
+    # the workers ignore SIGINT, as the eval's own: a Ctrl-C to the terminal's group must not kill a plot; and they
+    # end with this process however it ends
+    with mp_context().Pool(workers, initializer=init_worker, initargs=(None, None, os.getpid())) as pool:
         return pool.map(_plot_task, tasks)
 
 
