@@ -130,6 +130,9 @@ MOT_CLASS = 1  # TrackEval's MotChallenge2DBox evaluates class 1 only ("pedestri
 # motorbike), so a tracker's box on a bird or an aircraft stays a false positive
 MOT_CLASSES = {"target": MOT_CLASS, "aircraft": 3, "bird": 4, "glint": 5}
 COCO_CATEGORIES = {"target": TARGET_ID, "bird": 2, "aircraft": 3, "glint": 4}
+#: sequences one ``dataset`` command makes at most (each hundreds of frames; a mistyped --seeds otherwise builds a
+#: job list of that many before anything is checked or written)
+MAX_DATASET_SEQUENCES = 10_000
 PNG_COMPRESSION = 3  # cv2.IMWRITE_PNG_COMPRESSION: fixed, so the bytes are a function of the pixels
 # a sequence's files that a format or a scene writes (removed before the sequence is written again)
 SEQUENCE_FORMAT_FILES = ("gt/gt.txt", "seqinfo.ini", "obs.csv", "truth.objects.csv")
@@ -857,6 +860,11 @@ def cmd_dataset(args) -> int:
         if args.seed0 + args.seeds - 1 >= 2**63:  # a run seed is 63 bits (groundsim.world.sim), the last one too
             raise ConfigError(
                 f"--seed0: expected an integer in [0, 2^63 - {args.seeds}] with --seeds {args.seeds}, got {args.seed0}"
+            )
+        if len(scenarios) * args.seeds > MAX_DATASET_SEQUENCES:  # its job list is made before the first frame
+            raise ConfigError(
+                f"--seeds: at most {MAX_DATASET_SEQUENCES} sequences in one dataset (scenarios x seeds), got "
+                f"{len(scenarios)} x {args.seeds}; make it in parts with --seed0"
             )
         workers = pool_workers(args.workers)
         options = DatasetOptions(

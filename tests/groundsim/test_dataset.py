@@ -564,3 +564,14 @@ def test_a_ctrl_c_while_the_index_is_written_waits_for_it(tmp_path, monkeypatch,
     assert err[-1] == f"interrupted: 1 of 1 sequences written in {tmp_path}: P1-RTK-s0", err
     manifest = json.loads((tmp_path / "manifest.json").read_text())
     assert [s["name"] for s in manifest["sequences"]] == ["P1-RTK-s0"] and (tmp_path / "coco.json").is_file()
+
+
+def test_a_mistyped_seed_count_is_one_line_not_a_job_list_of_that_size(tmp_path, capsys):
+    from groundsim.evaluation.dataset import MAX_DATASET_SEQUENCES
+
+    out = tmp_path / "ds"
+    args = ["dataset", "--scenario", "P1", "P2", "--seeds", str(MAX_DATASET_SEQUENCES), "--out", str(out)]
+    assert cli_main(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "--seeds: at most 10000 sequences in one dataset" in err, err
+    assert not out.exists()
