@@ -45,7 +45,9 @@ def position_step_check(config: PoseConfig, dt_s: float, p0, v0, p1, v1) -> tupl
     if dt_s <= 0 or not (math.isfinite(v1[0]) and math.isfinite(v0[0])):
         return None
     half = 0.5 * dt_s
-    miss_m = math.sqrt(sum((p1[k] - (p0[k] + half * (v0[k] + v1[k]))) ** 2 for k in range(3)))
+    # hypot, not the root of a sum of squares: a position far out of range (refused, but kept to judge the next one
+    # by) squares past the largest float, which ** raises on
+    miss_m = math.hypot(*(p1[k] - (p0[k] + half * (v0[k] + v1[k])) for k in range(3)))
     sigma_m = extrapolation_sigma(dt_s, config.velocity_sigma_mps, config.accel_sigma_mps2)
     return miss_m, config.max_position_step_m + 3.0 * sigma_m
 

@@ -19,7 +19,7 @@ from unittest import mock
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from onboard.core import frames as F
@@ -426,6 +426,17 @@ ned_points = st.tuples(*(st.floats(-3000.0, 3000.0),) * 3)
         st.tuples(st.one_of(ned_points, st.tuples(any_float, any_float, any_float), st.just((1.0, 2.0))), velocities),
         max_size=12,
     )
+)
+# a position far out of range, refused, then judged against by the next one's step check: its square overflowed
+@example(
+    samples=[
+        ((0.0, 0.0, 0.0), None),
+        ((0.0, 0.0, 0.0), None),
+        ((1.0, 2.0), None),
+        ((0.0, 0.0, 0.0), None),
+        ((0.0, 0.0, 1.3407807929942597e154), (0.0, 0.0, 0.0)),
+        ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0)),
+    ]
 )
 def test_ned_position_streams_of_floats_equal_those_of_numpy_scalars(samples):
     bufs, logs = twin_buffers(origin=ORIGIN, config=PoseConfig(max_speed_mps=3000.0, jump_reset_count=2))
