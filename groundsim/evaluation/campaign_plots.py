@@ -11,13 +11,14 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+from groundsim.evaluation.report_plots import PNG_DPI
+
 __all__ = ["THRESHOLD_STYLE", "CRB_STYLE", "plot_manoeuvre"]
 
 #: The "works" threshold line: neutral grey, dash-dot (the algorithms are coloured, solid or dotted).
 THRESHOLD_STYLE = {"color": "0.45", "ls": "-.", "lw": 1.2}
 #: The Cramer-Rao bound: black, dashed.
 CRB_STYLE = {"color": "k", "ls": "--", "lw": 1.0}
-PNG_DPI = 110
 
 
 def plot_manoeuvre(path: Path, mrows: list[dict], good_err_pct: float, settle_after_s: float) -> bool:

@@ -662,7 +662,8 @@ def _write_files(plan: DemoPlan, outcome: DemoOutcome, tracks: list[dict], truth
     import numpy as np
 
     from groundsim.evaluation.eval import RunResult
-    from groundsim.evaluation.report import json_ready, plot_errors, plot_trajectory, write_tum
+    from groundsim.evaluation.report import json_ready, write_tum
+    from groundsim.evaluation.report_plots import plot_errors, plot_trajectory
 
     d = plan.out_dir
     files = {}

@@ -1,6 +1,6 @@
 """Plots of a recorded flight (``python -m onboard.replay FILE.mcap --report DIR``), with the eval report's own
-plotting functions (:func:`groundsim.evaluation.report.plot_trajectory`, :func:`~groundsim.evaluation.report.plot_errors`,
-:func:`~groundsim.evaluation.report.plot_frame`), so a field flight is reviewed like a simulated one.
+plotting functions (:func:`groundsim.evaluation.report_plots.plot_trajectory`, :func:`~groundsim.evaluation.report_plots.plot_errors`,
+:func:`~groundsim.evaluation.report_plots.plot_frame`), so a field flight is reviewed like a simulated one.
 
 The tracks (replayed, or as recorded) give the online reconstruction; the recorded poses give the camera's path;
 the truth comes from a simulator recording (``groundsim run --record``, channel ``/groundsim/truth``) when one
@@ -118,7 +118,7 @@ def write_flight_report(
     """Write the plots (module docstring); ``frames`` {(seq, t_us): pixels (H, W)} for the frame plot;
     ``summary_extra``: what the caller knows of its inputs, written into ``summary.json`` beside what the report
     drew.  Returns the paths written."""
-    from groundsim.evaluation.report import plot_errors, plot_frame, plot_trajectory
+    from groundsim.evaluation.report_plots import plot_errors, plot_frame, plot_trajectory
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

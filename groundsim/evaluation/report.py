@@ -1,8 +1,7 @@
 """Evaluation report files: ``report.json``, ``report.md``, PNG plots and TUM trajectories.
 
 Pure writers over the results of :mod:`groundsim.evaluation.eval` (and the demo's live table); no simulation
-here.  Plots use matplotlib's object API on the Agg canvas (``matplotlib.figure.Figure``): no
-pyplot state, no display needed.
+here.  The plots are :mod:`groundsim.evaluation.report_plots`'s.
 
 TUM trajectory format (one pose per line, as read by evo's ``file_interface.read_tum_trajectory_file``)::
 
@@ -32,13 +31,13 @@ from pathlib import Path
 
 import numpy as np
 
+from groundsim.evaluation import report_plots
 from groundsim.evaluation.out_dir import make_out_dir
 from onboard.core.errors import InputError
 
 __all__ = [
     "EVO_MAX_DIFF_S",
     "PAPER_TABLE2_PCT",
-    "PERFORMANCE_STAGES",
     "write_tum",
     "read_tum",
     "ape_rmse_m",
@@ -48,10 +47,6 @@ __all__ = [
     "format_table2",
     "format_closed_loop",
     "closed_loop_notes",
-    "plot_trajectory",
-    "plot_errors",
-    "plot_frame",
-    "plot_performance",
     "json_ready",
 ]
 
@@ -65,7 +60,6 @@ REFERENCE_PX03 = {"P1": (0.34, 0.85), "P2": (0.43, 1.5), "P3": (6.7, 6.1)}
 SCHEMA = "irtrack.eval/1"
 RATIO_LIMIT = 1.5  # the goal: the image chain within this factor of perfect centroids
 BASELINE_FAIL_PCT = 5.0  # a perfect-centroid baseline worse than this (err / range) failed: no ratio verdict on it
-PNG_DPI = 110
 EVAL_PLOTS = ("trajectory", "error", "frame")  # <label>_<plot>.png of write_eval_report
 EVAL_TUM_FILES = ("truth.tum", "estimate.tum", "estimate_perfect.tum")  # in <label>/seed<N>/
 
@@ -280,279 +274,6 @@ def _pct(x):
 def _short_geometry(description: str) -> str:
     d = description.split(":", 1)[-1].strip() if ":" in description else description
     return d.replace("|", "/")
-
-
-# --------------------------------------------------------------------------- plots
-
-
-def _figure(w_in: float, h_in: float):
-    from matplotlib.figure import Figure
-
-    return Figure(figsize=(w_in, h_in), layout="constrained")
-
-
-def _enu(p_ned):
-    """(east, north, up) columns of NED points, for plots that read like a map."""
-    p = np.asarray(p_ned, dtype=float)
-    return p[:, 1], p[:, 0], -p[:, 2]
-
-
-def _lbl(label: str, *values) -> str:
-    """``label`` when any of ``values`` has a finite number (the series is drawn), else matplotlib's
-    "no legend" label: a legend lists only what is drawn."""
-    for v in values:
-        a = np.asarray(v, dtype=float)
-        if a.size and np.isfinite(a).any():
-            return label
-    return "_nolegend_"
-
-
-def _legend(ax, **kw) -> None:
-    """A legend when something labelled is drawn (an empty one warns and shows a blank box)."""
-    handles, labels = ax.get_legend_handles_labels()
-    if handles:
-        ax.legend(**kw)
-
-
-def plot_trajectory(path, run, title: str = "") -> Path:
-    """Fig. 8 analogue: 3-D and top view of the target's truth, the online reconstruction (observable
-    frames; all frames with an estimate faint), the batch reconstruction and the observer's path."""
-    import mpl_toolkits.mplot3d  # noqa: F401 - registers the 3-D projection
-
-    fig = _figure(12.0, 5.4)
-    ax3 = fig.add_subplot(1, 2, 1, projection="3d")
-    ax2 = fig.add_subplot(1, 2, 2)
-    has = np.all(np.isfinite(run.est_p_ned_m), axis=1)
-    obs = has & run.observable
-    series = [
-        (run.truth_p_ned_m, dict(color="k", lw=2.0, label="target truth")),
-        (run.observer_p_ned_m, dict(color="0.55", lw=1.5, ls="--", label="observer (camera) path")),
-    ]
-    for p, kw in series:
-        e, n, u = _enu(p)
-        ax3.plot(e, n, u, **kw)
-        ax2.plot(e, n, **kw)
-    if (has & ~obs).any():
-        e, n, u = _enu(run.est_p_ned_m[has & ~obs])
-        ax3.scatter(e, n, u, s=4, color="tab:orange", alpha=0.25, label="online, not observable")
-        ax2.scatter(e, n, s=4, color="tab:orange", alpha=0.25, label="online, not observable")
-    if obs.any():
-        e, n, u = _enu(run.est_p_ned_m[obs])
-        ax3.scatter(e, n, u, s=5, color="tab:red", label="online track (observable)")
-        ax2.scatter(e, n, s=5, color="tab:red", label="online track (observable)")
-    b = (run.batch or {}).get("pipeline") or {}
-    if b.get("p_ned_m") is not None:
-        e, n, u = _enu(b["p_ned_m"])
-        ax3.plot(e, n, u, color="tab:blue", lw=1.2, label="batch (whole flight)")
-        ax2.plot(e, n, color="tab:blue", lw=1.2, label="batch (whole flight)")
-    e0, n0, _ = _enu(run.truth_p_ned_m[:1])
-    ax2.scatter(e0, n0, marker="o", color="k", s=20, zorder=5)
-    ax2.annotate("target start", (e0[0], n0[0]), textcoords="offset points", xytext=(5, 5), fontsize=8)
-    eo, no, _ = _enu(run.observer_p_ned_m[:1])
-    ax2.annotate("observer start", (eo[0], no[0]), textcoords="offset points", xytext=(5, -12), fontsize=8)
-    ax3.set_xlabel("east m", labelpad=8)
-    ax3.set_ylabel("north m", labelpad=8)
-    ax3.set_zlabel("up m", labelpad=10)  # the default pad puts the label on the tick labels
-    ax3.set_title("3-D (local frame about the scenario origin)")
-    ax2.set_xlabel("east m")
-    ax2.set_ylabel("north m")
-    ax2.set_aspect("equal", adjustable="datalim")
-    ax2.grid(True, alpha=0.3)
-    ax2.set_title("top view")
-    _legend(ax2, fontsize=8, loc="best")
-    fig.suptitle(title or f"{run.scenario} seed {run.seed}: truth vs reconstruction")
-    return _save(fig, path)
-
-
-def plot_errors(path, run, title: str = "") -> Path:
-    """Error over time: per NED axis with the reported 1-sigma band, and the range-normalised error of
-    the online track, the perfect-centroid baseline and the batch reconstruction."""
-    fig = _figure(11.0, 8.0)
-    axes = fig.subplots(4, 1, sharex=True)
-    t = run.t_s - run.t_s[0]
-    has = np.all(np.isfinite(run.est_p_ned_m), axis=1)
-    obs = has & run.observable
-    e = run.est_p_ned_m - run.truth_p_ned_m
-    with np.errstate(invalid="ignore"):
-        sig = np.sqrt(np.maximum(np.einsum("fii->fi", run.est_cov_ned_m2), 0.0))  # NaN where no estimate
-    for k, name in enumerate(("north", "east", "down")):
-        ax = axes[k]
-        ek = np.where(has, e[:, k], np.nan)
-        sk = np.where(has, sig[:, k], np.nan)
-        ax.fill_between(t, -sk, sk, color="tab:red", alpha=0.15, lw=0, label=_lbl("reported 1 sigma", sk))
-        e_obs, e_not = np.where(obs, ek, np.nan), np.where(has & ~obs, ek, np.nan)
-        ax.plot(t, e_obs, color="tab:red", lw=1.2, label=_lbl("error, observable", e_obs))
-        ax.plot(t, e_not, color="tab:orange", lw=0.8, alpha=0.7, label=_lbl("error, not observable", e_not))
-        ax.axhline(0.0, color="k", lw=0.5)
-        ax.set_ylabel(f"{name} m")
-        shown = np.abs(ek[obs]) if obs.any() else np.abs(ek[has])
-        finite = shown[np.isfinite(shown)]  # none where no estimated frame has truth (a truth cut short)
-        lim = max(1.0, 3.0 * float(np.percentile(finite, 95))) if finite.size else 1.0
-        ax.set_ylim(-lim, lim)
-        _mark_clipped(ax, t, ek, lim, "m", "observable" if obs.any() else "estimated")
-        ax.grid(True, alpha=0.3)
-    _legend(axes[0], fontsize=8, loc="upper right", ncol=3)
-    ax = axes[3]
-    rng = run.range_m
-    en = np.linalg.norm(e, axis=1) / rng * 100.0
-    en_obs, en_not = np.where(obs, en, np.nan), np.where(has & ~obs, en, np.nan)
-    ax.plot(t, en_obs, color="tab:red", lw=1.2, label=_lbl("online track (observable)", en_obs))
-    ax.plot(t, en_not, color="tab:orange", lw=0.8, alpha=0.7, label=_lbl("online, not observable", en_not))
-    bh = np.all(np.isfinite(run.base_p_ned_m), axis=1) & run.base_observable
-    eb = np.where(bh, np.linalg.norm(run.base_p_ned_m - run.truth_p_ned_m, axis=1) / rng * 100.0, np.nan)
-    ax.plot(t, eb, color="tab:green", lw=1.0, label=_lbl("perfect centroids (observable)", eb))
-    b = (run.batch or {}).get("pipeline") or {}
-    if b.get("p_ned_m") is not None:
-        idx = b["frames"]
-        ebt = np.linalg.norm(b["p_ned_m"] - run.truth_p_ned_m[idx], axis=1) / rng[idx] * 100.0
-        ax.plot(t[idx], ebt, color="tab:blue", lw=1.0, label=_lbl("batch (whole flight)", ebt))
-    ax.set_yscale("log")
-    from matplotlib.ticker import FuncFormatter, NullFormatter
-
-    ax.yaxis.set_major_formatter(FuncFormatter(lambda y, _pos: f"{y:g}"))
-    ax.yaxis.set_minor_formatter(NullFormatter())
-    ax.set_ylabel("||e|| / range %")
-    ax.set_xlabel("time s")
-    ax.grid(True, which="both", alpha=0.3)
-    _legend(ax, fontsize=8, loc="upper right", ncol=2)
-    fig.suptitle(title or f"{run.scenario} seed {run.seed}: reconstruction error")
-    return _save(fig, path)
-
-
-def _mark_clipped(ax, t, e, lim: float, unit: str, basis: str) -> int:
-    """Errors beyond the axis limit ``lim`` (3 x the 95th percentile of the ``basis`` errors, so the
-    spikes of unobservable estimates would otherwise be cut off unseen): a triangle on the edge at each
-    one's time and a note of the limit.  Returns how many were beyond."""
-    with np.errstate(invalid="ignore"):
-        above, below = e > lim, e < -lim
-    n = int(above.sum() + below.sum())
-    if n == 0:
-        return 0
-    for sel, y, marker in ((above, lim, "^"), (below, -lim, "v")):
-        if sel.any():
-            ax.scatter(t[sel], np.full(int(sel.sum()), y), marker=marker, s=14, color="0.25", clip_on=False, zorder=4)
-    ax.text(
-        0.005,
-        0.04,
-        f"axis clipped at \u00b1{lim:.3g} {unit} (3 x the 95th percentile of the {basis} errors): "
-        f"{n} error{'s' if n > 1 else ''} beyond, marked \u25b2\u25bc on the edge",
-        transform=ax.transAxes,
-        fontsize=7,
-        color="0.25",
-        bbox=dict(boxstyle="round,pad=0.2", fc="white", ec="0.7", alpha=0.85),
-        zorder=5,
-    )
-    return n
-
-
-def plot_frame(path, frame: dict, title: str = "") -> Path:
-    """One IR frame with the track box and the true target pixel, and a zoom on the target."""
-    from matplotlib.patches import Rectangle
-
-    img = np.asarray(frame["pixels"])
-    fig = _figure(11.0, 4.6)
-    gs = fig.add_gridspec(1, 3)
-    ax = fig.add_subplot(gs[0, :2])
-    az = fig.add_subplot(gs[0, 2])
-    tu, tv = frame.get("truth_uv_px") or (math.nan, math.nan)
-    half = 24
-    # display stretch only (the grey values are not changed): whole frame 0.5-99.95 %, zoom min-max
-    lo, hi = np.percentile(img, [0.5, 99.95])
-    zlo, zhi = lo, hi
-    if math.isfinite(tu):
-        u0, v0 = int(max(tu - half, 0)), int(max(tv - half, 0))
-        patch = img[v0 : int(tv + half) + 1, u0 : int(tu + half) + 1]
-        if patch.size:
-            zlo, zhi = float(patch.min()), float(patch.max())
-    for a, (vlo, vhi) in ((ax, (lo, hi)), (az, (zlo, zhi))):
-        a.imshow(
-            img,
-            cmap="gray",
-            vmin=vlo,
-            vmax=max(vhi, vlo + 1),
-            interpolation="nearest",
-            extent=(0, img.shape[1], img.shape[0], 0),
-        )
-    box = frame.get("bbox")
-    if box is not None:
-        for a in (ax, az):
-            a.add_patch(Rectangle((box[0], box[1]), box[2], box[3], fill=False, ec="tab:red", lw=1.5))
-    if frame.get("uv_px") is not None:
-        for a in (ax, az):
-            a.plot(*frame["uv_px"], "+", color="tab:red", ms=10, mew=1.5, label="track centre")
-    if math.isfinite(tu):
-        for a in (ax, az):
-            a.plot(tu, tv, "x", color="tab:cyan", ms=8, mew=1.5, label="true target pixel")
-        az.set_xlim(tu - half, tu + half)
-        az.set_ylim(tv + half, tv - half)
-    _legend(az, fontsize=8, loc="lower right")
-    ax.set_xlabel("u px")
-    ax.set_ylabel("v px")
-    az.set_title("zoom on the target")
-    ax.set_title(
-        f"frame {frame['k']} at t = {frame['t_s']:.2f} s, state {frame.get('state')}, range {frame['range_m']:.0f} m"
-        " (contrast stretched for display)",
-        fontsize=10,
-    )
-    fig.suptitle(title)
-    return _save(fig, path)
-
-
-#: The stacked stages of the performance plot: key of ``<key>_ms_per_frame``, colour, legend label.
-PERFORMANCE_STAGES = (
-    ("flight", "0.6", "flight (JSBSim, both vehicles)"),
-    ("render", "tab:purple", "render (the IR frame)"),
-    ("pipeline", "tab:red", "pipeline (FramePipeline.process: the daemon's work)"),
-    (
-        "baseline",
-        "tab:green",
-        "perfect-centroid baseline (evaluation only:\nthe same estimator on true pixels + noise)",
-    ),
-)
-
-
-def plot_performance(path, summary_perf: list[dict], latencies: dict[str, np.ndarray], title: str = "") -> Path:
-    """Fig. 9 analogue: per-frame processing latency distribution, and wall ms per frame by stage."""
-    fig = _figure(12.0, 4.6)
-    a1, a2 = fig.subplots(1, 2)
-    for name, lat in latencies.items():
-        lat = np.asarray(lat, dtype=float)
-        if lat.size:
-            a1.hist(
-                lat,
-                bins=np.logspace(np.log10(max(lat.min(), 0.05)), np.log10(max(lat.max(), 1.0)), 40),
-                histtype="step",
-                lw=1.5,
-                label=f"{name} (p50 {np.percentile(lat, 50):.1f} ms)",
-            )
-    a1.set_xscale("log")
-    a1.set_xlabel("pipeline processing per frame, ms (imaging + pose + estimator)")
-    a1.set_ylabel("frames")
-    a1.grid(True, which="both", alpha=0.3)
-    _legend(a1, fontsize=8)
-    names = [r["scenario"] for r in summary_perf]
-    bottom = np.zeros(len(names))
-    bars = []
-    for st, c, label in PERFORMANCE_STAGES:
-        vals = np.array([r.get(f"{st}_ms_per_frame") or 0.0 for r in summary_perf])
-        bars.append(a2.bar(names, vals, bottom=bottom, color=c, label=label))
-        bottom += vals
-    budget_ms = 1000.0 / 30.0
-    budget = a2.axhline(budget_ms, color="k", ls="--", lw=1, label=f"30 fps budget ({budget_ms:.1f} ms)")
-    a2.set_ylim(0.0, 1.75 * max(budget_ms, float(bottom.max(initial=0.0))))  # room for the legend above
-    a2.set_ylabel("wall ms per frame (lockstep, one process)")
-    a2.set_title("time per frame by stage (the daemon does only the pipeline)", fontsize=9)
-    a2.legend(handles=[budget, *bars[::-1]], fontsize=7, loc="upper left")  # top to bottom, as stacked
-    a2.grid(True, axis="y", alpha=0.3)
-    fig.suptitle(title or "performance")
-    return _save(fig, path)
-
-
-def _save(fig, path) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=PNG_DPI)
-    return path
 
 
 # --------------------------------------------------------------------------- the eval report
@@ -776,7 +497,7 @@ def write_eval_report(out_dir, result, planned: int | None = None) -> dict:
 
 def _plot_task(task: tuple) -> tuple[str, str]:
     key, fn, path, *args = task
-    return key, str(globals()[fn](path, *args).name)
+    return key, str(getattr(report_plots, fn)(path, *args).name)
 
 
 def _run_plots(tasks: list[tuple], workers: int) -> list[tuple[str, str]]:

@@ -67,7 +67,7 @@ def _recording(path: str, *, truth: list, truncated: str | None, inputs: list) -
 @pytest.fixture
 def cut_truth_flight(monkeypatch, tmp_path):
     """``groundsim report FLIGHT --truth SIM``: SIM cut after frame CUT_AFTER, before the first 3-D estimate."""
-    import groundsim.evaluation.report as plots
+    import groundsim.evaluation.report_plots as plots
     import onboard.app.replay as replay_module
 
     files = {

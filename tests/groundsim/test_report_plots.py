@@ -16,7 +16,8 @@ from matplotlib.figure import Figure
 
 from groundsim.evaluation.campaign_plots import THRESHOLD_STYLE, plot_manoeuvre
 from groundsim.evaluation.flight_report import FlightRun
-from groundsim.evaluation.report import DEFINITIONS, plot_errors, plot_performance, plot_trajectory
+from groundsim.evaluation.report import DEFINITIONS
+from groundsim.evaluation.report_plots import plot_errors, plot_performance, plot_trajectory
 from onboard.app.config import OutputConfig
 
 REPO = Path(__file__).resolve().parents[2]
