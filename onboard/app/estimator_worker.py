@@ -458,8 +458,7 @@ class ProcessEstimator(_Carried):
         self._started_s = -math.inf
         self._proc: BaseProcess | None = None
         self._conn: Connection | None = None
-        self._starting: tuple[threading.Thread, dict, float] | None = None  # a replacement being spawned
-        self._start_slow_counted = False
+        self._starting: _WorkerStart | None = None  # a replacement being spawned
         self._start()
 
     @property
@@ -488,46 +487,28 @@ class ProcessEstimator(_Carried):
     def _begin_start(self) -> None:
         """Spawn a replacement worker on a thread: the frame loop goes on (carried estimates) while a fork server
         that died with the worker is started again, and adopts the worker when it is there (:meth:`_adopt_started`)."""
-        box: dict[str, Any] = {"lock": threading.Lock(), "closed": False}
-
-        def run() -> None:
-            name_os_thread("irtrack-est-start")
-            try:
-                worker = self._spawn()
-            except Exception as exc:  # noqa: BLE001 - any failure to start is counted by the frame loop
-                box["error"] = exc
-                return
-            with box["lock"]:
-                if not box["closed"]:
-                    box["worker"] = worker
-                    return
-            _stop_unadopted(*worker)  # close() came first and did not wait for it
-
-        thread = threading.Thread(target=run, name="irtrack-estimator-start", daemon=True)
-        thread.start()
-        self._starting = (thread, box, self._clock())
+        self._starting = _WorkerStart(self._spawn, self._clock())
 
     def _adopt_started(self, wait_s: float) -> bool:
         """Take the worker :meth:`_begin_start` spawned, waiting up to ``wait_s`` for it; False while it is not
         there yet, or when it could not be started (counted; tried again after the crash back-off)."""
-        assert self._starting is not None
-        thread, box, since_s = self._starting
-        thread.join(wait_s)
-        if thread.is_alive():
-            if not self._start_slow_counted and self._clock() - since_s >= self.HUNG_S:
-                self._start_slow_counted = True
+        start = self._starting
+        assert start is not None
+        start.thread.join(wait_s)
+        if start.thread.is_alive():
+            if not start.slow_counted and self._clock() - start.since_s >= self.HUNG_S:
+                start.slow_counted = True
                 self._counter.count(
                     "estimator_hung", f"estimator process not started after {self.HUNG_S:.0f} s (its fork server)"
                 )
             return False
         self._starting = None
-        self._start_slow_counted = False
-        if "error" in box:
-            self._counter.count("estimator_error", f"estimator process could not be started: {box['error']}")
+        if start.worker is None:
+            self._counter.count("estimator_error", f"estimator process could not be started: {start.error}")
             self._backoff_s = min(max(2 * self._backoff_s, self.RESTART_BACKOFF_MIN_S), self.RESTART_BACKOFF_MAX_S)
             self._next_start_s = self._clock() + self._backoff_s
             return False
-        self._adopt(*box["worker"])
+        self._adopt(*start.worker)
         return True
 
     def _start(self) -> None:
@@ -812,11 +793,8 @@ class ProcessEstimator(_Carried):
     def close(self, timeout_s: float = 1.0) -> None:
         starting, self._starting = self._starting, None
         if starting is not None:  # a replacement being spawned: stopped with the rest, never left running
-            box = starting[1]
-            starting[0].join(min(timeout_s / 2, 0.05))  # a start with the fork server up is milliseconds
-            with box["lock"]:
-                box["closed"] = True  # one not done yet is stopped by its thread when it is (_begin_start)
-                worker = box.get("worker")
+            starting.thread.join(min(timeout_s / 2, 0.05))  # a start with the fork server up is milliseconds
+            worker = starting.close()
             if worker is not None:
                 if self._proc is None:
                     self._adopt(*worker)
@@ -836,6 +814,42 @@ class ProcessEstimator(_Carried):
             proc.join(timeout_s / 4)
         conn.close()
         self._proc = None
+
+
+class _WorkerStart:
+    """A replacement worker being spawned on a thread (:meth:`ProcessEstimator._begin_start`): ``worker`` once it
+    is there, ``error`` when it could not be started.  :meth:`close` and the thread hand over under a lock, so that a
+    worker made after the estimator closed is stopped by the thread itself, not left running."""
+
+    def __init__(self, spawn: Callable[[], tuple[BaseProcess, Connection]], since_s: float) -> None:
+        self.since_s = since_s
+        self.slow_counted = False  # estimator_hung counted for it
+        self.worker: tuple[BaseProcess, Connection] | None = None
+        self.error: Exception | None = None
+        self._lock = threading.Lock()
+        self._closed = False
+        self.thread = threading.Thread(target=self._run, args=(spawn,), name="irtrack-estimator-start", daemon=True)
+        self.thread.start()
+
+    def _run(self, spawn: Callable[[], tuple[BaseProcess, Connection]]) -> None:
+        name_os_thread("irtrack-est-start")
+        try:
+            worker = spawn()
+        except Exception as exc:  # noqa: BLE001 - any failure to start is counted by the frame loop
+            self.error = exc
+            return
+        with self._lock:
+            if not self._closed:
+                self.worker = worker
+                return
+        _stop_unadopted(*worker)  # close() came first and did not wait for it
+
+    def close(self) -> tuple[BaseProcess, Connection] | None:
+        """No taker after this: the worker made by now (the caller takes or stops it), or None (the thread stops
+        the one it makes)."""
+        with self._lock:
+            self._closed = True
+            return self.worker
 
 
 def _stop_unadopted(proc: BaseProcess, conn: Connection) -> None:

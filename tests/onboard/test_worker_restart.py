@@ -53,8 +53,8 @@ def _started(pe: ProcessEstimator) -> None:
     done when the frame looked was taken by it already)."""
     starting = pe._starting
     if starting is not None:
-        starting[0].join(JOIN_S)
-        assert not starting[0].is_alive()
+        starting.thread.join(JOIN_S)
+        assert not starting.thread.is_alive()
 
 
 def _fill_window(pe, obs, K) -> None:
@@ -239,7 +239,7 @@ def test_a_fork_server_gone_with_the_worker_is_started_again_without_holding_the
         pe.result_wait_s = 0.0
         late = pe.late_results
         est = _add(pe, obs, K, FRAMES_BEFORE_KILL)
-        assert pe.pid is None and pe._starting is not None and pe._starting[0].is_alive()
+        assert pe.pid is None and pe._starting is not None and pe._starting.thread.is_alive()
         assert est is not None and pe.late_results == late + 1  # carried from the newest estimate
         _started(pe)
         pe.result_wait_s = RESULT_WAIT_S
@@ -262,11 +262,11 @@ def test_close_while_a_replacement_is_being_started_leaves_no_worker_running(sce
     now[0] += ProcessEstimator.RESTART_BACKOFF_MIN_S
     _add(pe, obs, K, 1)
     starting = pe._starting
-    assert starting is not None and starting[0].is_alive()
+    assert starting is not None and starting.thread.is_alive()
     pe.close()  # the daemon's timeout: it does not wait for the fork server
-    assert starting[0].is_alive()  # still starting the replacement, which its thread stops when it is there
-    starting[0].join(JOIN_S)
-    assert not starting[0].is_alive() and "worker" not in starting[1] and "error" not in starting[1]
+    assert starting.thread.is_alive()  # still starting the replacement, which its thread stops when it is there
+    starting.thread.join(JOIN_S)
+    assert not starting.thread.is_alive() and starting.worker is None and starting.error is None
     pids = _children_named("irtrack-estimator")
     assert pids == [], f"estimator workers left running after close(): {pids}"
 
