@@ -10,6 +10,7 @@ as before; a summary that counts otherwise than the data section holds, or point
 from __future__ import annotations
 
 import struct
+from pathlib import Path
 
 import pytest
 
@@ -97,6 +98,58 @@ def _refused_everywhere(capsys, path, out, byte: int) -> None:
     assert not out.exists()
 
 
+def _cut_in_its_last_chunk(full: bytes) -> bytes:
+    """The recording as a kill leaves it: cut half way through its last chunk."""
+    last, length = _at(full, Opcode.CHUNK, "last")
+    return full[: last + length // 2]
+
+
+def _damaged_and_refused(capsys, tmp_path, data: bytes, opcode: int, which: str, change) -> tuple[int, Path, Path]:
+    """``data`` with the record :func:`_at` finds changed by ``change(bytes, at)`` written to damaged.mcap, which
+    every reader refuses naming the record's byte (:func:`_refused_everywhere`); ``(byte, damaged, out)``."""
+    edited = bytearray(data)
+    byte, _ = _at(edited, opcode, which)
+    change(edited, byte)
+    damaged, out = tmp_path / "damaged.mcap", tmp_path / "out.mcap"
+    damaged.write_bytes(bytes(edited))
+    _refused_everywhere(capsys, damaged, out, byte)
+    return byte, damaged, out
+
+
+def _opcode_set(flipped: int):
+    def change(data: bytearray, at: int) -> None:
+        data[at] = flipped
+
+    return change
+
+
+def _length_bit_flipped(bit: int):
+    def change(data: bytearray, at: int) -> None:
+        data[at + 1 + bit // 8] ^= 1 << (bit % 8)
+
+    return change
+
+
+def _recovers_all_but_a_hit_chunk(recording, damaged, out, byte: int, opcode: int) -> None:
+    """``record_recover --skip-damaged`` keeps every message but those of a chunk whose own record was hit, in the
+    file's order, byte for byte (exit 3)."""
+    full = _indexed(recording)
+    lost = _chunk_messages(recording, byte) if opcode == Opcode.CHUNK else []
+    assert recover(["--skip-damaged", str(damaged), str(out)]) == 3
+    assert _indexed(out) == [m for m in full if m not in lost]
+
+
+def _recovers_what_precedes_the_damage(tmp_path, cut_data: bytes, damaged, out) -> None:
+    """``record_recover --skip-damaged`` keeps the messages before the damage of a file cut short (a chunk whose
+    indexes were hit goes with them): a prefix, shorter than the undamaged cut file's (exit 3)."""
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(cut_data)
+    assert recover(["--skip-damaged", str(damaged), str(out)]) == 3
+    kept = _indexed(out)
+    whole, _ = _streamed(cut)
+    assert kept == whole[: len(kept)] and len(kept) < len(whole)
+
+
 #: id -> (the record's opcode, which one, the opcode it is given: one bit flipped)
 FINISHED = {
     "chunk_as_summary_offset": (Opcode.CHUNK, "middle", 0x0E),
@@ -132,19 +185,11 @@ def test_a_flipped_opcode_in_a_finished_recording_is_refused_naming_its_byte_and
 ):
     opcode, which, flipped = FINISHED[case]
     assert bin(opcode ^ flipped).count("1") == 1
-    data = bytearray(recording.read_bytes())
-    byte, _ = _at(data, opcode, which)
-    data[byte] = flipped
-    damaged, out = tmp_path / "damaged.mcap", tmp_path / "out.mcap"
-    damaged.write_bytes(bytes(data))
-    _refused_everywhere(capsys, damaged, out, byte)
-    # every message but those of a chunk whose own opcode was hit, in the file's order, byte for byte
-    full = _indexed(recording)
-    lost = _chunk_messages(recording, byte) if opcode == Opcode.CHUNK else []
-    assert recover(["--skip-damaged", str(damaged), str(out)]) == 3
-    captured = capsys.readouterr()
-    assert f"byte {byte}" in captured.err
-    assert _indexed(out) == [m for m in full if m not in lost]
+    byte, damaged, out = _damaged_and_refused(
+        capsys, tmp_path, recording.read_bytes(), opcode, which, _opcode_set(flipped)
+    )
+    _recovers_all_but_a_hit_chunk(recording, damaged, out, byte, opcode)
+    assert f"byte {byte}" in capsys.readouterr().err
 
 
 #: id -> (the record's opcode, which one, the opcode it is given), in a recording cut in its last chunk
@@ -160,20 +205,9 @@ CUT = {
 @pytest.mark.parametrize("case", list(CUT))
 def test_a_flipped_opcode_in_a_recording_cut_short_is_refused_not_taken_for_its_cut(recording, tmp_path, capsys, case):
     opcode, which, flipped = CUT[case]
-    full = recording.read_bytes()
-    last, length = _at(full, Opcode.CHUNK, "last")
-    data = bytearray(full[: last + length // 2])
-    byte, _ = _at(data, opcode, which)
-    data[byte] = flipped
-    cut, damaged, out = tmp_path / "cut.mcap", tmp_path / "damaged.mcap", tmp_path / "out.mcap"
-    cut.write_bytes(full[: last + length // 2])
-    damaged.write_bytes(bytes(data))
-    _refused_everywhere(capsys, damaged, out, byte)
-    # the records before the damage (a chunk whose indexes were hit goes with them)
-    assert recover(["--skip-damaged", str(damaged), str(out)]) == 3
-    kept = _indexed(out)
-    whole, _ = _streamed(cut)
-    assert kept == whole[: len(kept)] and len(kept) < len(whole)
+    cut = _cut_in_its_last_chunk(recording.read_bytes())
+    _, damaged, out = _damaged_and_refused(capsys, tmp_path, cut, opcode, which, _opcode_set(flipped))
+    _recovers_what_precedes_the_damage(tmp_path, cut, damaged, out)
 
 
 @pytest.mark.parametrize("where", ["finished", "in_a_chunk", "after_its_data_end", "in_its_summary", "in_its_magic"])
@@ -220,16 +254,10 @@ def test_a_flipped_length_bit_is_refused_naming_its_record_even_where_it_looks_l
     """A finished file ends with its closing magic: a record whose length runs past the end of such a file, or short of
     the footer, was damaged, not cut (a footer or data end record never grows: a longer one is damage too)."""
     opcode, which, bit = LENGTHS[case]
-    data = bytearray(recording.read_bytes())
-    byte, _ = _at(data, opcode, which)
-    data[byte + 1 + bit // 8] ^= 1 << (bit % 8)
-    damaged, out = tmp_path / "damaged.mcap", tmp_path / "out.mcap"
-    damaged.write_bytes(bytes(data))
-    _refused_everywhere(capsys, damaged, out, byte)
-    full = _indexed(recording)
-    lost = _chunk_messages(recording, byte) if opcode == Opcode.CHUNK else []
-    assert recover(["--skip-damaged", str(damaged), str(out)]) == 3
-    assert _indexed(out) == [m for m in full if m not in lost]
+    byte, damaged, out = _damaged_and_refused(
+        capsys, tmp_path, recording.read_bytes(), opcode, which, _length_bit_flipped(bit)
+    )
+    _recovers_all_but_a_hit_chunk(recording, damaged, out, byte, opcode)
 
 
 #: id -> (the record's opcode, which one, the bit of its length flipped), in a recording cut in its last chunk
@@ -244,19 +272,9 @@ def test_a_flipped_length_bit_in_a_recording_cut_short_is_not_taken_for_its_cut(
     """A record whose length runs past the end of a file cut short is where the file was cut only if its own fields
     run past it too (a cut cuts them) and the length is one a reader reads at all."""
     opcode, which, bit = CUT_LENGTHS[case]
-    full = recording.read_bytes()
-    last, length = _at(full, Opcode.CHUNK, "last")
-    data = bytearray(full[: last + length // 2])
-    byte, _ = _at(data, opcode, which)
-    data[byte + 1 + bit // 8] ^= 1 << (bit % 8)
-    damaged, out = tmp_path / "damaged.mcap", tmp_path / "out.mcap"
-    damaged.write_bytes(bytes(data))
-    _refused_everywhere(capsys, damaged, out, byte)
-    (tmp_path / "cut.mcap").write_bytes(full[: last + length // 2])
-    assert recover(["--skip-damaged", str(damaged), str(out)]) == 3
-    kept = _indexed(out)
-    whole, _ = _streamed(tmp_path / "cut.mcap")
-    assert kept == whole[: len(kept)] and len(kept) < len(whole)
+    cut = _cut_in_its_last_chunk(recording.read_bytes())
+    _, damaged, out = _damaged_and_refused(capsys, tmp_path, cut, opcode, which, _length_bit_flipped(bit))
+    _recovers_what_precedes_the_damage(tmp_path, cut, damaged, out)
 
 
 def _edited(recording, tmp_path, edit) -> tuple:
