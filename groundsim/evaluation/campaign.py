@@ -102,7 +102,7 @@ from groundsim.evaluation.parallel import (
     quiet_run_logs,
     start_pool,
 )
-from groundsim.io.stop_signals import finish_despite_signals, sigterm_as_ctrl_c
+from groundsim.io.stop_signals import finish_despite_signals, signals_held, sigterm_as_ctrl_c
 from groundsim.world.noise_cases import NoiseCase, load_noise_cases
 from groundsim.world.scenario import Scenario, load_scenario
 from onboard.core.errors import ConfigError
@@ -857,9 +857,10 @@ def run_campaign(
             else:
                 results = (run_job(j) for j in jobs)
             for rows in results:
-                append_rows(log_path, rows)
-                ran += len(rows)
-                failed += sum(1 for r in rows if r.get("status") != "ok")
+                with signals_held():  # logged and counted together: the interrupted line's count is the log's
+                    append_rows(log_path, rows)
+                    ran += len(rows)
+                    failed += sum(1 for r in rows if r.get("status") != "ok")
                 if bar is not None:
                     bar.update(len(rows))
                     bar.set_postfix_str(

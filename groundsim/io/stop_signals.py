@@ -24,6 +24,7 @@ __all__ = [
     "install_stop_signals",
     "print_interrupted",
     "finish_despite_signals",
+    "signals_held",
     "sigterm_as_ctrl_c",
 ]
 
@@ -82,6 +83,22 @@ def finish_despite_signals(what: str = "the report") -> Iterator[list[int]]:
         yield received
     finally:
         restore()
+
+
+@contextlib.contextmanager
+def signals_held() -> Iterator[None]:
+    """While the block runs, SIGINT and SIGTERM wait: one received in it raises KeyboardInterrupt as the block
+    ends (unless the block raised).  For a short step that must happen whole or not at all, such as a result
+    written to a log and counted: a Ctrl-C between the two had the command report fewer runs done than its log
+    holds."""
+    received: list[int] = []
+    restore = install_stop_signals(threading.Event(), received, on_first=lambda _name: None)
+    try:
+        yield
+    finally:
+        restore()
+    if received:
+        raise KeyboardInterrupt
 
 
 @contextlib.contextmanager

@@ -65,6 +65,48 @@ def test_a_second_ctrl_c_while_the_table_is_written_does_not_cut_it_short(tmp_pa
     assert lines == [f"interrupted: {logged} of 4 runs done; the same command resumes"], err
 
 
+def test_a_ctrl_c_as_a_case_is_logged_counts_it_done(tmp_path, monkeypatch, capsys):
+    """Ctrl-C arriving while the first case's rows are logged: they are logged and counted together, so the
+    interrupted line says what the log holds (it had said 0 of 4 with 2 runs in the log: the signal came between
+    the write and the count)."""
+    import groundsim.evaluation.campaign as campaign
+
+    append_rows = campaign.append_rows
+
+    def ctrl_c_after_writing(path, rows):
+        rows = list(rows)
+        append_rows(path, rows)
+        if rows:  # not the check that the log opens for appending
+            signal.raise_signal(signal.SIGINT)
+
+    monkeypatch.setattr(campaign, "append_rows", ctrl_c_after_writing)
+    out = tmp_path / "out"
+    rc = cli_main(["campaign", str(_spec_file(tmp_path)), "--out", str(out), "--workers", "1", "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == EXIT_INTERRUPTED, err
+    logged = len(read_log(out / LOG_NAME)[0])
+    assert logged == 2  # the first case's two algorithms, and no second case
+    lines = [line for line in err.splitlines() if line.startswith("interrupted:")]
+    assert lines == [f"interrupted: {logged} of 4 runs done; the same command resumes"], err
+
+
+def test_signals_held_defers_a_ctrl_c_to_the_end_of_the_block():
+    """A SIGINT inside the block is raised as KeyboardInterrupt once the block has run to its end; none is raised
+    when none came, and the handler before the block is back after it."""
+    from groundsim.io.stop_signals import signals_held
+
+    before = signal.getsignal(signal.SIGINT)
+    steps = []
+    with pytest.raises(KeyboardInterrupt):
+        with signals_held():
+            signal.raise_signal(signal.SIGINT)
+            steps.append("after the signal")
+    assert steps == ["after the signal"]
+    with signals_held():
+        steps.append("quiet")
+    assert steps == ["after the signal", "quiet"] and signal.getsignal(signal.SIGINT) is before
+
+
 @pytest.mark.parametrize("name", [TABLE_NAME, REPORT_NAME])
 def test_a_write_stopped_half_way_leaves_the_earlier_file_whole(tmp_path, monkeypatch, name):
     """The table and the report are written beside their names and renamed over them: a write stopped half way
