@@ -277,14 +277,50 @@ def _convert(px: np.ndarray, encoding: str, where: str) -> np.ndarray:
     return px
 
 
+#: OpenCV's own log lines (``[ WARN:0@0.024] global grfmt_png.cpp:855 read_chunk ...``): the words after it
+_OPENCV_LOG_PREFIX = re.compile(r"^\[\s*[A-Z]+:[^\]]*\]\s*(?:global\s+)?\S+:\d+\s+")
+
+
+@contextlib.contextmanager
+def _fd2_captured() -> Iterator[list[str]]:
+    """File descriptor 2 into a temporary file while the block runs; the list holds what was written there,
+    stripped, once the block ends.  The image libraries OpenCV decodes with (libpng, libjpeg, libtiff) print
+    their errors on fd 2 themselves, past Python's ``sys.stderr``: a corrupt frame would otherwise print a
+    ``libpng error: ...`` line before this tool's own one line."""
+    import tempfile
+
+    said: list[str] = []
+    sys.stderr.flush()
+    with tempfile.TemporaryFile() as sink:
+        saved = os.dup(2)
+        try:
+            os.dup2(sink.fileno(), 2)
+            yield said
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            sink.seek(0)
+            said.extend(line.strip() for line in sink.read().decode("utf-8", "replace").splitlines() if line.strip())
+
+
 def _read_image(path: Path) -> tuple[np.ndarray, str | None]:
     """The frame's grey pixels and the layout it was converted from (``colour``, ``colour+alpha``,
-    ``grey+alpha``; None when it was grey)."""
+    ``grey+alpha``; None when it was grey).  A frame that does not decode is one :class:`InputError` naming it,
+    with the decoder's own words (which it would otherwise have printed on fd 2 before that line)."""
     import cv2
 
-    px = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    try:
+        data = np.fromfile(path, dtype=np.uint8)
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read this frame: {exc.strerror or exc}") from None
+    with _fd2_captured() as said:
+        try:
+            px = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+        except cv2.error:  # a header OpenCV refuses before decoding: no image, as for a corrupt one
+            px = None
     if px is None:
-        raise InputError(f"{path}: cannot read this frame (not an image OpenCV decodes, or truncated)")
+        why = f": {_OPENCV_LOG_PREFIX.sub('', said[-1])}" if said else ""  # the last is the one that stopped it
+        raise InputError(f"{path}: cannot read this frame (not an image OpenCV decodes, or truncated{why})")
     if px.ndim == 3 and px.shape[2] == 1:
         return px[:, :, 0], None
     if px.ndim == 3:

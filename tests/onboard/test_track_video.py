@@ -178,6 +178,24 @@ def test_bad_input_is_one_line_naming_the_file_and_exit_2(tmp_path, capsys, case
     assert err.startswith(named), err
 
 
+def test_a_corrupt_png_is_one_line_on_fd_2_with_the_decoders_words(tmp_path, capfd):
+    """libpng prints its error on file descriptor 2 itself, past ``sys.stderr`` (capsys does not see it): the
+    decoder's words go into the tool's one line instead of a line of their own before it."""
+    seq = tmp_path / "seq"
+    seq.mkdir()
+    for k in range(3):
+        cv2.imwrite(str(seq / f"{k:03d}.png"), _mono8(k))
+    bad = seq / "001.png"
+    data = bytearray(bad.read_bytes())
+    idat = data.index(b"IDAT") + 4  # the compressed pixels: a valid header, then a broken zlib stream
+    data[idat + 8 : idat + 24] = bytes(range(16))
+    bad.write_bytes(bytes(data))
+    code = main([str(seq), "--out", str(tmp_path / "t.txt"), "--quiet"])
+    err = capfd.readouterr().err
+    assert code == EXIT_INPUT and len(err.splitlines()) == 1, err
+    assert err.startswith(f"{bad}: cannot read this frame") and "libpng" in err, err
+
+
 # --------------------------------------------------------------------------- the output: replaced only on success
 
 
