@@ -694,7 +694,9 @@ class SetpointGate:
     accepting autopilot is PX4, whose OFFBOARD mode needs the stream to go on, the setpoint between advices is zero
     velocity at the setpoint rate (``holding``) instead.  :meth:`halt` brakes for a daemon that stops.  A gate that first
     sees the autopilot already in the accepting mode (a daemon restarted in flight) starts stopped too: the hand-over
-    is the pilot's entering the mode while this daemon watches.  The autopilot's own failsafe handles a setpoint
+    is the pilot's entering the mode while this daemon watches.  A link that comes back after a loss is such a start
+    (the pilot may have left and re-entered the mode unheard): the first heartbeat after it decides the same way,
+    and a gate that was commanding when the link was lost is stopped already (``link_lost``) and stays so.  The autopilot's own failsafe handles a setpoint
     stream that stops (ArduPilot GUIDED holds after its velocity timeout, PX4 leaves OFFBOARD): deploy/README.md.
     """
 
@@ -703,7 +705,9 @@ class SetpointGate:
         self.state = "off" if not config.enabled else "waiting"
         self.why = "" if config.enabled else "guidance.enabled is false"
         self.stops: dict[str, int] = {}
-        self._mode_seen = False  # a heartbeat's mode seen since start (the first decides the hand-over)
+        # a heartbeat's mode seen since start or since the link came back (the first decides the hand-over)
+        self._mode_seen = False
+        self._link_was_up = False  # a mode seen before (the hand-over's why: a restart, or the link back)
         self._brake_until_s = -math.inf
 
     def _accepting(self, mode: tuple[int, int, int] | None) -> bool:
@@ -758,10 +762,19 @@ class SetpointGate:
         if not self.config.enabled:
             return SetpointDecision(False, None, "off", self.why)
         accepting = link_connected and self._accepting(mode)
-        if link_connected and mode is not None and not self._mode_seen:
+        if not link_connected:  # the pilot may switch modes while nothing is heard: the link's return decides afresh
+            self._mode_seen = False
+        elif mode is not None and not self._mode_seen:
             self._mode_seen = True
-            if accepting:  # in the mode before this daemon saw it enter it: not handed over to this daemon
-                self._stop("handover: the autopilot was in the accepting mode when guidance started (a restart?)")
+            # in the mode before this daemon saw it enter it: not handed over to this daemon (a gate already stopped,
+            # e.g. by the loss while commanding, stays latched under its own reason)
+            if accepting and self.state != "stopped":
+                self._stop(
+                    "handover: the autopilot was in the accepting mode when its link came back"
+                    if self._link_was_up
+                    else "handover: the autopilot was in the accepting mode when guidance started (a restart?)"
+                )
+            self._link_was_up = True
         if self.state == "stopped":
             if link_connected and not accepting:  # the pilot took the vehicle back: re-arm the gate
                 self._brake_until_s = -math.inf

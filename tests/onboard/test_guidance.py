@@ -373,6 +373,34 @@ def test_a_gate_that_first_sees_the_accepting_mode_waits_for_the_pilot_to_hand_o
     assert gate.stops == {"handover": 1}
 
 
+def test_a_link_that_comes_back_in_the_accepting_mode_waits_for_the_pilot_to_hand_over():
+    """LOITER, the link lost for 7 s, back in GUIDED: the gate's "mode seen" lived for the whole process, so it sent
+    an advice of -8 m/s 76 ms after the first GUIDED heartbeat, a switch it never saw; a fresh daemon waited.  The
+    link's return is a fresh start; a gate that was commanding when it was lost stays stopped under link_lost."""
+    from onboard.estimation.guidance import SetpointGate
+
+    gate = SetpointGate(build(GuidanceConfig, {"enabled": True}))
+    pose = (0.0, np.array([0.0, 0.0, -60.0]), np.zeros(3))
+    advice = (100.0, np.array([-8.0, 0.0, 0.0]))
+
+    def step(now, mode, link=True):
+        return gate.step(now, link_connected=link, mode=mode, pose=(now, *pose[1:]), advice=advice)
+
+    assert step(0.0, LOITER).state == "not_accepting"
+    assert not step(1.0, None, link=False).send
+    d = step(8.0, GUIDED)
+    assert not d.send and d.state == "stopped"
+    assert d.why == "handover: the autopilot was in the accepting mode when its link came back"
+    assert step(8.5, LOITER).state == "not_accepting"
+    assert step(9.0, GUIDED).send  # the switch seen: handed over
+    d = step(9.25, None, link=False)  # lost while commanding: braking, latched
+    assert d.send and not d.v_ned_mps.any() and d.why.startswith("link_lost")
+    assert not step(16.0, GUIDED).send and gate.state == "stopped" and gate.why.startswith("link_lost")
+    assert step(16.5, LOITER).state == "not_accepting"
+    assert step(17.0, GUIDED).send
+    assert gate.stops == {"handover": 1, "link_lost": 1}
+
+
 def test_an_unknown_vehicle_velocity_stops_the_setpoints():
     from onboard.estimation.guidance import SetpointGate
 
