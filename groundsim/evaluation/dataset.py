@@ -28,19 +28,27 @@ Labels (:func:`target_label`, pure):
 
 * ``u_px, v_px``: the target centre's projection at the TRUE camera pose (:func:`groundsim.world.render.truth_pixel`,
   the renderer's own projection): the sub-pixel centroid a perfect detector would report; NaN behind the camera;
-* box ``x_px, y_px, w_px, h_px``: the projected 8 corners of the target's body bounding box (the union of
-  ``scenario.ir.target_parts``) joined to the target as drawn (the pixels holding >= 10 % of its peak signal,
-  as the scene objects' boxes: the optics' blur spreads a far target's sub-pixel body over a few pixels, and a
-  detector's box on the blob must be able to match it), clipped to the image;
+* box ``x_px, y_px, w_px, h_px`` (labels.csv's and COCO's; not MOT's, below): the projected 8 corners of the
+  target's body bounding box (the union of ``scenario.ir.target_parts``) joined to the target as drawn (the pixels
+  holding >= 10 % of its peak signal, as the scene objects' boxes: the optics' blur spreads a far target's
+  sub-pixel body over a few pixels, and a detector's box on the blob must be able to match it), clipped to the
+  image;
 * ``visibility``: clipped box area / unclipped box area (MOT's meaning: the visible fraction), 0 behind
   the camera or outside the image; ``in_image``: the centre is inside the image (``truth.target_visible``).
 
 A frame whose target is not in the image has no gt.txt line and no COCO annotation; labels.csv keeps it.
 gt.txt (MOT 1.1 ground truth): ``frame, id, bb_left, bb_top, bb_width, bb_height, consider, class,
-visibility`` with MOT's 1-based pixel coordinates (``bb_left = x_px + 1``), class 1 (the one class
-TrackEval's MOT reader evaluates; here: "the target"), consider 1, or 0 for an object behind a cloud (TrackEval
-leaves those rows out, as in ``groundsim eval``'s files).  ``DIR/seqmaps/irtrack-all.txt`` lists the sequences
-(TrackEval's ``SEQMAP_FILE``, with ``GT_FOLDER=DIR``, ``SKIP_SPLIT_FOL=True``).  A run into a folder that holds a
+visibility``.  Its box is not the box above but the ``groundsim.evaluation.mot.BOX_SIDE_PX`` (6 px) square about
+the label's centroid ``(u_px, v_px)``, in MOT's 1-based pixel coordinates (``bb_left = u_px - 3 + 1``) and not
+clipped to the image: ``groundsim eval``'s convention for point targets, whose boxes of a few pixels make IoU
+meaningless (a point tracker's box, its blob's pixels or a square about its centre, does not reach IoU 0.5 with
+a 3 x 3 px blob's box even on the right centre; ``onboard.track_video --box-px 6`` writes the matching squares).
+labels.csv and COCO keep the box as drawn (detection).  Class 1 (the one class TrackEval's MOT reader evaluates;
+here: "the target"), consider 1, or 0 for a target behind a cloud (TrackEval leaves those rows out, as in
+``groundsim eval``'s files); visibility the target's visible fraction (labels.csv's ``visibility``: how much of
+its drawn box is in the image, not of the square, which may reach past the edge), 0 behind a cloud.
+``DIR/seqmaps/irtrack-all.txt`` lists the sequences (TrackEval's ``SEQMAP_FILE``, with ``GT_FOLDER=DIR``,
+``SKIP_SPLIT_FOL=True``).  A run into a folder that holds a
 dataset replaces the sequences it makes again whole (their files of formats not asked for go too, as does
 ``coco.json`` when COCO is not asked for); it refuses a folder whose dataset has sequences it would not make.
 The earlier manifest, ``coco.json`` and seqmap go before the first sequence is written, and the new ones are
@@ -49,11 +57,12 @@ not finished), and the same command takes the folder again.
 
 The scene's other objects (a scenario with a ``scene``: ``groundsim.world.render.scene.ObjectLabel``), when
 their box is in the image (visible or behind a cloud): MOT id and COCO ``track_id`` = object id + 1 (the
-target, object 0, keeps id 1 and its label above); box = the pixels holding >= 10 % of the object's peak
-signal; MOT class :data:`MOT_CLASSES` (other targets 1; birds, aircraft, glints classes of MOT17 that
-TrackEval neither evaluates nor treats as distractors, so a tracker's box on a bird is a false positive),
-consider and visibility 1 (visible) or 0 (behind a cloud); COCO category :data:`COCO_CATEGORIES` with
-``visibility_state``, ``contrast_netd`` (a magnitude) and ``warm`` (the signal above the local background).
+target, object 0, keeps id 1 and its label above); COCO box = the pixels holding >= 10 % of the object's peak
+signal, MOT box the square about its centroid as the target's; MOT class :data:`MOT_CLASSES` (other targets 1;
+birds, aircraft, glints classes of MOT17 that TrackEval neither evaluates nor treats as distractors, so a
+tracker's box on a bird is a false positive), consider and visibility 1 (visible) or 0 (behind a cloud); COCO
+category :data:`COCO_CATEGORIES` with ``visibility_state``, ``contrast_netd`` (a magnitude) and ``warm`` (the
+signal above the local background).
 An object behind a cloud, the target included, is a COCO ``iscrowd`` 1 annotation (``visibility_state``
 ``occluded``, keypoint flag 1): pycocotools' ``COCOeval`` ignores it, neither a miss nor, where a detection
 matches it, a false positive, as TrackEval leaves out the MOT rows with consider 0 (``COCOeval`` reads no other
@@ -307,22 +316,27 @@ def _object_box(lab, intrinsics) -> tuple[float, float, float, float] | None:
 
 def mot_gt_lines(labels: list[tuple[int, TargetLabel]], objects=(), intrinsics=None) -> str:
     """gt.txt text from ``(frame 1-based, label)`` pairs of the target (frames without a box are left out)
-    and ``(frame, (ObjectLabel, ...))`` of the scene's other objects (see the module docstring)."""
+    and ``(frame, (ObjectLabel, ...))`` of the scene's other objects (see the module docstring): each box the
+    ``BOX_SIDE_PX`` square about the label's centroid, not the box as drawn: a point tracker's box (its blob's few
+    pixels, or a fixed square about its centre) does not reach IoU 0.5 with a blob's box of a few pixels even on
+    the right centre."""
+    from groundsim.evaluation.mot import square_box
+
     rows = []
     for frame, lab in labels:
         if lab.has_box:
+            seen = not lab.occluded
             rows.append(
                 (
                     frame,
                     TARGET_ID,
-                    f"{frame},{TARGET_ID},{lab.x_px + 1.0:.4f},{lab.y_px + 1.0:.4f},{lab.w_px:.4f},{lab.h_px:.4f},"
-                    f"{0 if lab.occluded else 1},{MOT_CLASS},{lab.visibility:.4f}\n",
+                    f"{frame},{TARGET_ID},{square_box(lab.u_px, lab.v_px)},{int(seen)},{MOT_CLASS},"
+                    f"{lab.visibility if seen else 0.0:.4f}\n",
                 )
             )
     for frame, labs in objects:
         for o in labs:
-            box = _object_box(o, intrinsics)
-            if box is None:
+            if _object_box(o, intrinsics) is None:
                 continue
             oid = int(o.object_id) + 1
             seen = o.visibility == "visible"
@@ -330,8 +344,7 @@ def mot_gt_lines(labels: list[tuple[int, TargetLabel]], objects=(), intrinsics=N
                 (
                     frame,
                     oid,
-                    f"{frame},{oid},{box[0] + 1.0:.4f},{box[1] + 1.0:.4f},{box[2]:.4f},{box[3]:.4f},"
-                    f"{int(seen)},{MOT_CLASSES[o.cls]},{float(seen):.4f}\n",
+                    f"{frame},{oid},{square_box(o.u_px, o.v_px)},{int(seen)},{MOT_CLASSES[o.cls]},{float(seen):.4f}\n",
                 )
             )
     rows.sort(key=lambda r: (r[0], r[1]))

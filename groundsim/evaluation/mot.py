@@ -29,6 +29,7 @@ from pathlib import Path
 
 __all__ = [
     "BOX_SIDE_PX",
+    "square_box",
     "gt_rows",
     "tracker_rows",
     "seq_name",
@@ -49,7 +50,9 @@ SETTLE_S = 1.0
 MIN_CONTRAST_NETD = 3.0
 
 
-def _box(u: float, v: float) -> str:
+def square_box(u: float, v: float) -> str:
+    """``x,y,w,h`` of the ``BOX_SIDE_PX`` square about the centre ``(u, v)`` (the chain's pixels: pixel i spans
+    [i, i + 1)) in MOT's 1-based pixels, not clipped to the image: a point target's box in every MOT file here."""
     h = BOX_SIDE_PX / 2
     return f"{u - h + 1.0:.3f},{v - h + 1.0:.3f},{BOX_SIDE_PX:.3f},{BOX_SIDE_PX:.3f}"
 
@@ -63,10 +66,10 @@ def gt_rows(frame: int, labels, truth_uv=None, truth_visible: bool = False) -> l
             if not (math.isfinite(o.u_px) and math.isfinite(o.v_px)):
                 continue  # behind the camera: nowhere in the image to put it
             vis = 1 if o.visibility == "visible" else 0
-            rows.append(f"{frame},{int(o.object_id) + 1},{_box(o.u_px, o.v_px)},{vis},1,{float(vis):.1f}\n")
+            rows.append(f"{frame},{int(o.object_id) + 1},{square_box(o.u_px, o.v_px)},{vis},1,{float(vis):.1f}\n")
     elif truth_uv is not None and all(math.isfinite(c) for c in truth_uv):
         vis = 1 if truth_visible else 0
-        rows.append(f"{frame},1,{_box(truth_uv[0], truth_uv[1])},{vis},1,{float(vis):.1f}\n")
+        rows.append(f"{frame},1,{square_box(truth_uv[0], truth_uv[1])},{vis},1,{float(vis):.1f}\n")
     return rows
 
 
@@ -84,7 +87,7 @@ def tracker_rows(frame: int, objects=None, track=None) -> list[str]:
     """Tracker lines of one frame: ``objects`` an ObjectsUpdate (its confirmed objects), else ``track``
     (a Track: one line while tracking)."""
     return [
-        f"{frame},{i},{_box(u, v)},{'1' if score is None else f'{max(score, 0.0):.3f}'},-1,-1,-1\n"
+        f"{frame},{i},{square_box(u, v)},{'1' if score is None else f'{max(score, 0.0):.3f}'},-1,-1,-1\n"
         for i, u, v, score in _tracked(objects, track)
     ]
 

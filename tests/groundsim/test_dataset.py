@@ -137,7 +137,7 @@ def test_mot_layout_read_by_trackeval(dataset, tmp_path):
     trackeval = pytest.importorskip(
         "trackeval"
     )  # installed with --no-deps (it pins opencv-python, which shadows contrib)
-    from groundsim.evaluation.mot import score_mot
+    from groundsim.evaluation.mot import BOX_SIDE_PX, score_mot
 
     out, summaries = dataset
     mot = tmp_path / "mot"
@@ -170,10 +170,11 @@ def test_mot_layout_read_by_trackeval(dataset, tmp_path):
             boxes = raw["gt_dets"][t]
             if labels["in_image"][t]:
                 assert boxes.shape == (1, 4) and raw["gt_ids"][t].tolist() == [1]
-                # MOT's 1-based pixel coordinates: bb_left = x_px + 1
+                # the BOX_SIDE_PX square about the label's centroid, in MOT's 1-based pixel coordinates
+                half = BOX_SIDE_PX / 2
                 np.testing.assert_allclose(
                     boxes[0],
-                    [labels["x_px"][t] + 1, labels["y_px"][t] + 1, labels["w_px"][t], labels["h_px"][t]],
+                    [labels["u_px"][t] - half + 1, labels["v_px"][t] - half + 1, BOX_SIDE_PX, BOX_SIDE_PX],
                     atol=1e-3,
                 )
     scores = score_mot(tmp_path, [s.name for s in summaries], tracker="gt_copy")
@@ -256,6 +257,24 @@ def test_label_box_clipped_at_the_image_edge():
     assert not behind.in_image and not behind.has_box and math.isnan(behind.u_px)
     with pytest.raises(Exception, match="visibility"):
         TargetLabel(1.0, 1.0, 0.0, 0.0, 1.0, 1.0, 1.5, True)
+
+
+def test_a_mot_box_at_the_image_edge_is_the_whole_square_and_visibility_the_drawn_fraction():
+    """The MOT gt box is the BOX_SIDE_PX square about the centroid, not clipped (a tracker's square about the same
+    centre reaches past the edge alike); its visibility column stays MOT's visible fraction of the object: the
+    drawn box's share in the image (labels.csv's), 0 for a target behind a cloud."""
+    from groundsim.evaluation.dataset import mot_gt_lines
+    from groundsim.evaluation.mot import BOX_SIDE_PX
+
+    edge = TargetLabel(0.6, 100.5, 0.0, 99.0, 2.0, 3.0, 0.5, True)  # drawn box [-2, 2) x [99, 102): half in
+    hidden = TargetLabel(300.5, 200.5, 299.0, 199.0, 3.0, 3.0, 1.0, True, occluded=True)
+    rows = [line.split(",") for line in mot_gt_lines([(1, edge), (2, hidden)]).splitlines()]
+    half = BOX_SIDE_PX / 2
+    assert [float(v) for v in rows[0][2:6]] == pytest.approx(
+        [0.6 - half + 1, 100.5 - half + 1, BOX_SIDE_PX, BOX_SIDE_PX]
+    )
+    assert rows[0][6] == "1" and float(rows[0][8]) == pytest.approx(0.5)
+    assert rows[1][6] == "0" and float(rows[1][8]) == 0.0
 
 
 def test_options_refuse_bad_values():

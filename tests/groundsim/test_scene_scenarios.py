@@ -318,10 +318,13 @@ def test_dataset_carries_every_object_in_mot_and_coco(c3_dataset):
         assert x - 1.0 <= u <= x + w + 1.0 and y - 1.0 <= v <= y + h + 1.0
 
 
-def test_the_targets_box_holds_it_as_drawn(c3_dataset):
-    """The target's gt box holds the pixels its label in truth.objects.csv says it was drawn on (>= 10 % of its
-    peak): at C3's range its body projects to ~2 x 0.8 px, its blur to ~4 x 3, and a detector's box on the blob
-    must be able to reach IoU 0.5 with the truth."""
+def test_the_targets_label_box_holds_it_as_drawn_and_its_mot_box_is_a_square_about_its_centroid(c3_dataset):
+    """The target's labels.csv box (and COCO's) holds the pixels truth.objects.csv says it was drawn on (>= 10 % of
+    its peak: at C3's range its body projects to ~2 x 0.8 px, its blur to ~4 x 3, and a detector's box on the blob
+    must be able to reach IoU 0.5 with it); its MOT gt box is the BOX_SIDE_PX square about the label's centroid, the
+    box a point tracker is scored with."""
+    from groundsim.evaluation.mot import BOX_SIDE_PX
+
     out, summaries = c3_dataset
     seq = out / summaries[0].name
     drawn = {
@@ -329,14 +332,56 @@ def test_the_targets_box_holds_it_as_drawn(c3_dataset):
         for r in csv.DictReader(open(seq / "truth.objects.csv", encoding="ascii"))
         if r["object_id"] == "0" and r["x0_px"]
     }
+    labels = {int(r["frame"]): r for r in csv.DictReader(open(seq / "labels.csv", encoding="ascii"))}
     gt = [line.split(",") for line in (seq / "gt" / "gt.txt").read_text().splitlines()]
     target = {int(g[0]): [float(v) for v in g[2:6]] for g in gt if g[1] == "1"}
     assert drawn and set(drawn) <= set(target)
     for frame, (x0, y0, x1, y1) in drawn.items():
-        left, top, w, h = target[frame]
-        x, y = left - 1.0, top - 1.0  # MOT's 1-based pixels
-        assert x <= x0 + 1e-3 and y <= y0 + 1e-3 and x + w >= x1 - 1e-3 and y + h >= y1 - 1e-3, (frame, target[frame])
+        x, y, w, h = (float(labels[frame][k]) for k in ("x_px", "y_px", "w_px", "h_px"))
+        assert x <= x0 + 1e-3 and y <= y0 + 1e-3 and x + w >= x1 - 1e-3 and y + h >= y1 - 1e-3, (frame, x, y, w, h)
         assert w >= 3.0 and h >= 2.0
+        u, v = float(labels[frame]["u_px"]), float(labels[frame]["v_px"])
+        half = BOX_SIDE_PX / 2
+        assert target[frame] == pytest.approx([u - half + 1.0, v - half + 1.0, BOX_SIDE_PX, BOX_SIDE_PX], abs=1e-3)
+
+
+def test_a_point_trackers_squares_half_a_pixel_off_match_every_target_row(c3_dataset, tmp_path):
+    """A point tracker (``track_video --box-px 6``: 6 px squares about its centres) 0.5 px off every target's
+    centroid is a perfect tracker to TrackEval: its squares reach IoU 0.85 with the gt's (a box as drawn, 3 x 3 to
+    4 x 4 px, would have left them under 0.5 and every one a false positive and a miss)."""
+    from groundsim.evaluation.mot import BOX_SIDE_PX
+
+    trackeval = pytest.importorskip("trackeval")
+    out, summaries = c3_dataset
+    name = summaries[0].name
+    targets = [
+        r
+        for r in csv.DictReader(open(out / name / "truth.objects.csv", encoding="ascii"))
+        if r["cls"] == "target" and r["visibility"] == "visible"
+    ]
+    assert {r["object_id"] for r in targets} == {"0", "1"}  # C3's two targets
+    half = BOX_SIDE_PX / 2
+    trk = tmp_path / "trackers" / "point" / "data"
+    trk.mkdir(parents=True)
+    (trk / f"{name}.txt").write_text(
+        "".join(
+            f"{int(r['seq']) + 1},{int(r['object_id']) + 7},{float(r['u_px']) + 0.5 - half + 1:.3f},"
+            f"{float(r['v_px']) - half + 1:.3f},{BOX_SIDE_PX},{BOX_SIDE_PX},1,-1,-1,-1\n"
+            for r in targets
+        )
+    )
+    (tmp_path / "seqmap.txt").write_text(f"name\n{name}\n")
+    ds = trackeval.datasets.MotChallenge2DBox(
+        dict(GT_FOLDER=str(out), TRACKERS_FOLDER=str(tmp_path / "trackers"), SKIP_SPLIT_FOL=True,
+             SEQMAP_FILE=str(tmp_path / "seqmap.txt"), PRINT_CONFIG=False, OUTPUT_FOLDER=str(tmp_path / "te_out"))
+    )  # fmt: skip
+    ev = trackeval.Evaluator(
+        dict(USE_PARALLEL=False, PRINT_RESULTS=False, PRINT_CONFIG=False, OUTPUT_SUMMARY=False,
+             OUTPUT_DETAILED=False, PLOT_CURVES=False, TIME_PROGRESS=False, DISPLAY_LESS_PROGRESS=True)
+    )  # fmt: skip
+    res, _ = ev.evaluate([ds], [trackeval.metrics.CLEAR(dict(PRINT_CONFIG=False))])
+    clear = res["MotChallenge2DBox"]["point"]["COMBINED_SEQ"]["pedestrian"]["CLEAR"]
+    assert clear["CLR_TP"] == len(targets) and clear["CLR_FP"] == 0 and clear["MOTA"] == pytest.approx(1.0)
 
 
 def test_an_object_behind_a_cloud_is_a_row_trackeval_leaves_out():
@@ -352,7 +397,7 @@ def test_an_object_behind_a_cloud_is_a_row_trackeval_leaves_out():
     target = TargetLabel(50.5, 60.5, 49.0, 59.0, 3.0, 3.0, 1.0, True, occluded=True)
     rows = [line.split(",") for line in mot_gt_lines([(1, target)], [(1, (bird, seen))], K).splitlines()]
     consider = {int(r[1]): (int(r[6]), float(r[8])) for r in rows}
-    assert consider == {1: (0, 1.0), 4: (0, 0.0), 5: (1, 1.0)}
+    assert consider == {1: (0, 0.0), 4: (0, 0.0), 5: (1, 1.0)}  # hidden: none of it seen
 
 
 def test_trackeval_scores_the_targets_and_counts_a_box_on_a_bird_as_a_false_positive(c3_dataset, tmp_path):
