@@ -44,8 +44,10 @@ clipped to the image: ``groundsim eval``'s convention for point targets, whose b
 meaningless (a point tracker's box, its blob's pixels or a square about its centre, does not reach IoU 0.5 with
 a 3 x 3 px blob's box even on the right centre; ``onboard.track_video --box-px 6`` writes the matching squares).
 labels.csv and COCO keep the box as drawn (detection).  Class 1 (the one class TrackEval's MOT reader evaluates;
-here: "the target"), consider 1, or 0 for a target behind a cloud (TrackEval leaves those rows out, as in
-``groundsim eval``'s files); visibility the target's visible fraction (labels.csv's ``visibility``: how much of
+here: "the target") and consider 1; a target behind a cloud consider 0 and class
+``groundsim.evaluation.mot.HIDDEN_CLASS`` (8, MOT17's "distractor"), as in ``groundsim eval``'s files: TrackEval
+leaves the row out of the truth and drops a tracker's box that matches it (a tracker coasting through the cloud is
+right), where with any other class it would still count that box a false positive; visibility the target's visible fraction (labels.csv's ``visibility``: how much of
 its drawn box is in the image, not of the square, which may reach past the edge), 0 behind a cloud.
 ``DIR/seqmaps/irtrack-all.txt`` lists the sequences (TrackEval's ``SEQMAP_FILE``, with ``GT_FOLDER=DIR``,
 ``SKIP_SPLIT_FOL=True``).  A run into a folder that holds a
@@ -60,13 +62,14 @@ their box is in the image (visible or behind a cloud): MOT id and COCO ``track_i
 target, object 0, keeps id 1 and its label above); COCO box = the pixels holding >= 10 % of the object's peak
 signal, MOT box the square about its centroid as the target's; MOT class :data:`MOT_CLASSES` (other targets 1;
 birds, aircraft, glints classes of MOT17 that TrackEval neither evaluates nor treats as distractors, so a
-tracker's box on a bird is a false positive), consider and visibility 1 (visible) or 0 (behind a cloud); COCO
+tracker's box on a bird is a false positive), consider and visibility 1 (visible) or 0 (behind a cloud: class 8
+then, as the target's); COCO
 category :data:`COCO_CATEGORIES` with ``visibility_state``, ``contrast_netd`` (a magnitude) and ``warm`` (the
 signal above the local background).
 An object behind a cloud, the target included, is a COCO ``iscrowd`` 1 annotation (``visibility_state``
 ``occluded``, keypoint flag 1): pycocotools' ``COCOeval`` ignores it, neither a miss nor, where a detection
-matches it, a false positive, as TrackEval leaves out the MOT rows with consider 0 (``COCOeval`` reads no other
-"ignore" field: it sets its own from ``iscrowd``).
+matches it, a false positive, as TrackEval treats the MOT rows of hidden objects (consider 0, class 8)
+(``COCOeval`` reads no other "ignore" field: it sets its own from ``iscrowd``).
 A frame the camera model dropped (its shutter closed, ``ffc.mode: dropped``) is written as an all-zero image.  COCO: boxes ``[x, y, w, h]`` in
 continuous 0-based pixels (and as a 4-corner polygon ``segmentation``), one keypoint ``[u, v, 2]`` = the sub-pixel centroid, plus ``track_id``,
 ``visibility`` (the target's), ``visibility_state`` (every annotation's: ``visible`` or ``occluded``),
@@ -201,7 +204,7 @@ class TargetLabel:
     h_px: float
     visibility: float
     in_image: bool
-    occluded: bool = False  # behind a cloud (a scene's label): MOT's consider 0
+    occluded: bool = False  # behind a cloud (a scene's label): MOT's consider 0, class 8
 
     def __post_init__(self) -> None:
         for name in ("x_px", "y_px", "w_px", "h_px", "visibility"):
@@ -320,7 +323,7 @@ def mot_gt_lines(labels: list[tuple[int, TargetLabel]], objects=(), intrinsics=N
     ``BOX_SIDE_PX`` square about the label's centroid, not the box as drawn: a point tracker's box (its blob's few
     pixels, or a fixed square about its centre) does not reach IoU 0.5 with a blob's box of a few pixels even on
     the right centre."""
-    from groundsim.evaluation.mot import square_box
+    from groundsim.evaluation.mot import HIDDEN_CLASS, square_box
 
     rows = []
     for frame, lab in labels:
@@ -330,8 +333,8 @@ def mot_gt_lines(labels: list[tuple[int, TargetLabel]], objects=(), intrinsics=N
                 (
                     frame,
                     TARGET_ID,
-                    f"{frame},{TARGET_ID},{square_box(lab.u_px, lab.v_px)},{int(seen)},{MOT_CLASS},"
-                    f"{lab.visibility if seen else 0.0:.4f}\n",
+                    f"{frame},{TARGET_ID},{square_box(lab.u_px, lab.v_px)},{int(seen)},"
+                    f"{MOT_CLASS if seen else HIDDEN_CLASS},{lab.visibility if seen else 0.0:.4f}\n",
                 )
             )
     for frame, labs in objects:
@@ -344,7 +347,8 @@ def mot_gt_lines(labels: list[tuple[int, TargetLabel]], objects=(), intrinsics=N
                 (
                     frame,
                     oid,
-                    f"{frame},{oid},{square_box(o.u_px, o.v_px)},{int(seen)},{MOT_CLASSES[o.cls]},{float(seen):.4f}\n",
+                    f"{frame},{oid},{square_box(o.u_px, o.v_px)},{int(seen)},"
+                    f"{MOT_CLASSES[o.cls] if seen else HIDDEN_CLASS},{float(seen):.4f}\n",
                 )
             )
     rows.sort(key=lambda r: (r[0], r[1]))

@@ -9,9 +9,14 @@ Per run, ``SEQ = <scenario>-<nav>-s<seed>``::
 
 Frames are numbered from 1 in both (frame k of the run is k + 1); x, y 1-based (MOT's convention).
 gt's 7th column is 1 for a visible object and 0 otherwise (occluded, out of frame: a row for every object with a
-place in the image plane, none for one behind the camera; TrackEval leaves the 0 rows out); every object is class
-1 (pedestrian, the class TrackEval evaluates): irtrack tracks every warm moving object.  Ids are the
-scene's object id + 1 (the target is 1); without a scene only the target, from the truth row.
+place in the image plane, none for one behind the camera).  A visible object is class 1 (pedestrian, the class
+TrackEval evaluates): irtrack tracks every warm moving object.  A hidden one (consider 0) is class
+``HIDDEN_CLASS`` (8, MOT17's "distractor"): TrackEval leaves every row that is not class 1 or has consider 0 out
+of the truth, but a tracker box on such a row still counts as a false positive unless the row's class is a
+distractor one, whose matched tracker boxes it removes (``MotChallenge2DBox.get_preprocessed_seq_data``); a track
+coasting on an object through a cloud or across the image edge is right, neither a detection nor a false alarm
+(as :class:`PerceptionScore` counts it).  Ids are the scene's object id + 1 (the target is 1); without a scene
+only the target, from the truth row.
 
 Boxes: the objects are points of a few pixels, and IoU of 2 x 2 px boxes is 0 after a 2 px shift, so
 both the truth's and the tracker's boxes are squares of ``BOX_SIDE_PX`` about their centres (IoU 0.5 at
@@ -29,6 +34,7 @@ from pathlib import Path
 
 __all__ = [
     "BOX_SIDE_PX",
+    "HIDDEN_CLASS",
     "square_box",
     "gt_rows",
     "tracker_rows",
@@ -43,6 +49,8 @@ __all__ = [
 ]
 
 BOX_SIDE_PX = 6.0
+#: MOT17's "distractor": the class of a hidden object's row (consider 0), whose tracker box TrackEval drops
+HIDDEN_CLASS = 8
 #: a tracked object within this of an object's true centre detects it (the perception issue's 3 px)
 MATCH_PX = 3.0
 #: objects count for the detection probability from this long after they first show, at this contrast and above
@@ -59,18 +67,24 @@ def square_box(u: float, v: float) -> str:
 
 def gt_rows(frame: int, labels, truth_uv=None, truth_visible: bool = False) -> list[str]:
     """gt.txt lines of one frame (1-based ``frame``): ``labels`` the scene's ObjectLabels, else the
-    target from ``truth_uv`` (u, v) and ``truth_visible``."""
+    target from ``truth_uv`` (u, v) and ``truth_visible``; a hidden object's row ``HIDDEN_CLASS`` (the module
+    docstring says why)."""
     rows = []
     if labels:
         for o in labels:
             if not (math.isfinite(o.u_px) and math.isfinite(o.v_px)):
                 continue  # behind the camera: nowhere in the image to put it
-            vis = 1 if o.visibility == "visible" else 0
-            rows.append(f"{frame},{int(o.object_id) + 1},{square_box(o.u_px, o.v_px)},{vis},1,{float(vis):.1f}\n")
+            rows.append(_gt_row(frame, int(o.object_id) + 1, o.u_px, o.v_px, o.visibility == "visible"))
     elif truth_uv is not None and all(math.isfinite(c) for c in truth_uv):
-        vis = 1 if truth_visible else 0
-        rows.append(f"{frame},1,{square_box(truth_uv[0], truth_uv[1])},{vis},1,{float(vis):.1f}\n")
+        rows.append(_gt_row(frame, 1, truth_uv[0], truth_uv[1], truth_visible))
     return rows
+
+
+def _gt_row(frame: int, mot_id: int, u: float, v: float, visible: bool) -> str:
+    """One gt.txt line: a visible object class 1, consider 1; a hidden one ``HIDDEN_CLASS``, consider 0."""
+    if visible:
+        return f"{frame},{mot_id},{square_box(u, v)},1,1,1.0\n"
+    return f"{frame},{mot_id},{square_box(u, v)},0,{HIDDEN_CLASS},0.0\n"
 
 
 def _tracked(objects=None, track=None) -> list[tuple[int, float, float, float | None]]:

@@ -8,7 +8,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from groundsim.evaluation.mot import BOX_SIDE_PX, gt_rows, seq_name, tracker_rows, write_mot
+from groundsim.evaluation.mot import BOX_SIDE_PX, HIDDEN_CLASS, gt_rows, seq_name, tracker_rows, write_mot
 
 
 def _label(oid, u, v, visibility="visible"):
@@ -28,12 +28,15 @@ def test_gt_rows_every_object_one_based_with_visibility_flag():
     # every object the image plane can place, visible (1) or not (0: occluded, out of frame); none behind the camera
     assert [r.split(",")[:2] for r in rows] == [["3", "1"], ["3", "3"], ["3", "6"]]
     assert [r.split(",")[6] for r in rows] == ["1", "0", "0"]
+    # hidden: MOT17's distractor class, whose matched tracker boxes TrackEval drops rather than counts
+    assert [r.split(",")[7] for r in rows] == ["1", str(HIDDEN_CLASS), str(HIDDEN_CLASS)] == ["1", "8", "8"]
     f = rows[0].split(",")
     # MOT's 1-based left/top of a BOX_SIDE_PX square about the centre
     assert float(f[2]) == pytest.approx(10.0 - BOX_SIDE_PX / 2 + 1) and float(f[5]) == BOX_SIDE_PX
     assert f[6] == "1" and rows[1].split(",")[6] == "0"
     assert gt_rows(1, (), (5.0, 6.0), True)[0].startswith("1,1,")
-    assert gt_rows(1, (), (5.0, 6.0), False)[0].split(",")[6] == "0" and gt_rows(1, (), (math.nan, 6.0), True) == []
+    assert gt_rows(1, (), (5.0, 6.0), False)[0].split(",")[6:8] == ["0", "8"]
+    assert gt_rows(1, (), (math.nan, 6.0), True) == []
 
 
 def test_tracker_rows_from_objects_or_the_single_track():
@@ -67,6 +70,31 @@ def test_write_mot_layout_and_trackeval_scores_a_perfect_tracker(tmp_path, capsy
     # one of two objects tracked perfectly, the other missed: DetA 0.5, AssA 1, HOTA sqrt(0.5)
     assert m["DetA"] == pytest.approx(0.5) and m["AssA"] == pytest.approx(1.0)
     assert m["HOTA"] == pytest.approx(math.sqrt(0.5)) and m["IDSW"] == 0
+
+
+@pytest.mark.parametrize("hidden", ["occluded", "out_of_frame"])
+def test_a_track_coasting_on_a_hidden_object_is_neither_a_hit_nor_a_false_positive(tmp_path, hidden):
+    """An object visible on frame 1, behind a cloud (or just past the image edge) on frame 2, and a track on it
+    both frames: TrackEval scores it perfect.  With the hidden row class 1 (consider 0) TrackEval had left the row
+    out but counted the box on it a false positive (HOTA 0.5); PerceptionScore counts it neither way either."""
+    pytest.importorskip("trackeval")
+    from groundsim.evaluation.mot import PerceptionScore, score_mot
+
+    u = {"occluded": 100.0, "out_of_frame": -1.0}[hidden]
+    gt = "".join(gt_rows(1, [_label(0, 100.0, 50.0)]) + gt_rows(2, [_label(0, u, 50.0, hidden)]))
+    track = [
+        SimpleNamespace(confirmed=(SimpleNamespace(object_id=3, u_px=x, v_px=50.0, score=2.0),)) for x in (100.0, u)
+    ]
+    trk = "".join(tracker_rows(1, track[0]) + tracker_rows(2, track[1]))
+    run = SimpleNamespace(scenario="S", nav_noise="RTK", seed=0, frames=2, error=None, mot_gt=gt, mot_tracker=trk)
+    seqs = write_mot(tmp_path, [run], {"S": (640, 512, 30.0)})
+    m = score_mot(tmp_path, seqs)[seqs[0]]
+    assert m["HOTA"] == pytest.approx(1.0) and m["MOTA"] == pytest.approx(1.0)
+    ps = PerceptionScore(frame_rate_hz=1.0)
+    ps.add([(0, 100.0, 50.0, True, 10.0)], {3: (100.0, 50.0)}, None)
+    ps.add([(0, u, 50.0, False, 10.0)], {3: (u, 50.0)}, None)
+    f = ps.figures()
+    assert f["false_tracks_per_min"] == 0.0 and f["pd_counted"] == 0  # settling: 1 s; the hidden frame not counted
 
 
 def test_perception_score_pd_false_tracks_switches_and_state_accuracy():

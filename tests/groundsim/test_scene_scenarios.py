@@ -385,7 +385,8 @@ def test_a_point_trackers_squares_half_a_pixel_off_match_every_target_row(c3_dat
 
 
 def test_an_object_behind_a_cloud_is_a_row_trackeval_leaves_out():
-    """consider 0 for an occluded object or target (TrackEval drops those rows, as in groundsim eval's files)."""
+    """consider 0 and class 8 (MOT17's distractor) for an occluded object or target, as in groundsim eval's files:
+    TrackEval drops those rows, and a tracker's box on one too (with its own class it would be a false positive)."""
     import dataclasses
 
     from groundsim.evaluation.dataset import TargetLabel, mot_gt_lines
@@ -396,8 +397,8 @@ def test_an_object_behind_a_cloud_is_a_row_trackeval_leaves_out():
     seen = dataclasses.replace(bird, object_id=4, visibility="visible")
     target = TargetLabel(50.5, 60.5, 49.0, 59.0, 3.0, 3.0, 1.0, True, occluded=True)
     rows = [line.split(",") for line in mot_gt_lines([(1, target)], [(1, (bird, seen))], K).splitlines()]
-    consider = {int(r[1]): (int(r[6]), float(r[8])) for r in rows}
-    assert consider == {1: (0, 0.0), 4: (0, 0.0), 5: (1, 1.0)}  # hidden: none of it seen
+    consider = {int(r[1]): (int(r[6]), int(r[7]), float(r[8])) for r in rows}
+    assert consider == {1: (0, 8, 0.0), 4: (0, 8, 0.0), 5: (1, 4, 1.0)}  # hidden: none of it seen
 
 
 def test_trackeval_scores_the_targets_and_counts_a_box_on_a_bird_as_a_false_positive(c3_dataset, tmp_path):
