@@ -11,9 +11,10 @@
 * a folder of frames: PNG (8- or 16-bit), TIFF, JPEG or BMP files, sorted by name (numbers in names by value:
   ``2.png`` before ``10.png``), read with OpenCV as stored (``IMREAD_UNCHANGED``: a 16-bit PNG stays 16-bit;
   colour frames, and grey frames with an alpha channel, are turned to grey, which the summary line says);
-* a sequence folder of a public tracking benchmark: MOT's (its ``img1/``, ``000001.jpg`` ..., and its
-  ``seqinfo.ini``, whose ``frameRate`` is the rate unless ``--fps`` says, and whose ``seqLength`` is checked
-  against the frames), Anti-UAV's (its frames, or its ``IR.mp4`` / ``infrared.mp4``, with ``IR_label.json`` /
+* a sequence folder of a public tracking benchmark: MOT's (its ``seqinfo.ini``, whose ``imDir`` names the
+  frames' folder, ``img1/`` when it names none -- an ``imDir`` outside the sequence folder or missing is refused
+  --, whose ``frameRate`` is the rate unless ``--fps`` says, and whose ``seqLength`` is checked against the
+  frames; its image folder given itself, the ``seqinfo.ini`` above it is read alike), Anti-UAV's (its frames, or its ``IR.mp4`` / ``infrared.mp4``, with ``IR_label.json`` /
   ``infrared.json`` beside).
 
 Every frame goes through the daemon's ``imaging.chain: objects`` (:class:`onboard.imaging.objects.ObjectTracker`,
@@ -66,9 +67,9 @@ input; SIGTERM (a job's time limit, ``timeout``) is taken as Ctrl-C.
 file it points to is replaced, the link kept.  It must not be an input: the video, a frame of the input folder, or
 any image file in that folder (a later run would read it as a frame).
 
-Exit codes: 0 done; 2 bad input -- a missing path, a frame that cannot be read, frames of mixed size or depth or
-too small, two frame files of one number, an output that cannot be written or naming an input -- in one line
-naming the file; 130 interrupted by Ctrl-C or SIGTERM (the tracks of the frames done are in the output).
+Exit codes: 0 done; 2 bad input -- a missing path, a seqinfo.ini ``imDir`` refused, a frame that cannot be read,
+frames of mixed size or depth or too small, two frame files of one number, an output that cannot be written or
+naming an input -- in one line naming the file; 130 interrupted by Ctrl-C or SIGTERM (the tracks of the frames done are in the output).
 """
 
 from __future__ import annotations
@@ -118,6 +119,8 @@ FRAME_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg", ".bmp")
 #: the video a benchmark's sequence folder holds instead of frames (Anti-UAV: IR.mp4, its 2021 edition infrared.mp4)
 VIDEO_NAMES = ("IR.mp4", "infrared.mp4")
 DEFAULT_FOLDER_FPS = 30.0
+SEQINFO_NAME = "seqinfo.ini"
+DEFAULT_IM_DIR = "img1"  # MOT's image folder when seqinfo.ini names none
 #: a folder whose frame numbers step by more than this (median) is named by something else (times): numbered by
 #: position.  A benchmark's own numbering steps by 1; a subsampled one (every 10th frame kept) by a few
 MAX_NUMBER_STEP = 30
@@ -234,36 +237,76 @@ def _numbered(folder: Path, files: list[Path]) -> tuple[list[Path], list[int]]:
     return ordered, numbers
 
 
-def _seqinfo(folder: Path) -> tuple[float | None, int | None]:
-    """A MOT sequence's ``seqinfo.ini`` (in ``folder`` or, for its ``img1/``, the folder above): its ``frameRate``
-    and ``seqLength`` (None where absent or not a positive number; a warning names a value that is not)."""
+def _sequence_section(path: Path) -> dict[str, str] | None:
+    """The ``[Sequence]`` values of the MOT ``seqinfo.ini`` at ``path`` (keys lower-cased, as configparser reads
+    them; {} without that section); None when there is no such file or, with a warning naming it, when it cannot
+    be read."""
     import configparser
 
-    for path in (
-        (folder / "seqinfo.ini", folder.parent / "seqinfo.ini") if folder.name == "img1" else (folder / "seqinfo.ini",)
-    ):
-        if not path.is_file():
-            continue
-        parser = configparser.ConfigParser()
+    if not path.is_file():
+        return None
+    parser = configparser.ConfigParser()
+    try:
+        parser.read(path, encoding="utf-8")
+    except (configparser.Error, OSError, UnicodeDecodeError) as exc:
+        log.warning("%s: not read (%s): its image folder, frame rate and length are not used", path, exc)
+        return None
+    return dict(parser["Sequence"]) if parser.has_section("Sequence") else {}
+
+
+def _im_dir(section: dict[str, str] | None) -> str:
+    """The image folder a ``[Sequence]`` section names (``imDir``), MOT's ``img1`` when it names none."""
+    raw = (section or {}).get("imdir", "").strip()
+    return raw or DEFAULT_IM_DIR
+
+
+def _image_folder(seq: Path) -> tuple[Path | None, dict[str, str] | None]:
+    """The frames' folder of the MOT sequence folder ``seq`` (its ``seqinfo.ini``'s ``imDir``; ``img1/`` when it
+    names none; None when that folder is absent and was not named) and the ``[Sequence]`` values.  An ``imDir``
+    that leaves ``seq`` (absolute, ``..``) or names no folder in it is an :class:`InputError` naming the key:
+    the frames are where the sequence's truth says, not wherever a folder of that name happens to be."""
+    ini = seq / SEQINFO_NAME
+    section = _sequence_section(ini)
+    named = (section or {}).get("imdir", "").strip()
+    if not named:
+        folder = seq / DEFAULT_IM_DIR
+        return (folder if folder.is_dir() else None), section
+    where = f"{ini}: [Sequence] imDir = {named!r}"
+    rel = os.path.normpath(named)
+    if os.path.isabs(rel) or rel == os.curdir or rel.split(os.sep)[0] == os.pardir:
+        raise InputError(f"{where}: not a folder inside the sequence folder {seq}")
+    folder = seq / rel
+    if not folder.is_dir():
+        raise InputError(f"{where}: no such folder in {seq}")
+    return folder, section
+
+
+def _describing_section(folder: Path) -> tuple[Path, dict[str, str]] | None:
+    """The ``seqinfo.ini`` (path and ``[Sequence]`` values) describing the frames in ``folder``: its own, else
+    the one in the folder above when that one's image folder (``imDir``, else ``img1``) is ``folder``."""
+    for ini in (folder / SEQINFO_NAME, folder.parent / SEQINFO_NAME):
+        section = _sequence_section(ini)
+        if section is not None and (ini.parent == folder or os.path.normpath(_im_dir(section)) == folder.name):
+            return ini, section
+    return None
+
+
+def _seqinfo(path: Path, section: dict[str, str]) -> tuple[float | None, int | None]:
+    """A MOT sequence's ``seqinfo.ini`` (``path``, its ``[Sequence]`` values ``section``): its ``frameRate`` and
+    ``seqLength`` (None where absent or not a positive number; a warning names a value that is not)."""
+    values: dict[str, float | None] = {}
+    for key in ("frameRate", "seqLength"):
+        raw = section.get(key.lower())
         try:
-            parser.read(path, encoding="utf-8")
-        except (configparser.Error, OSError, UnicodeDecodeError) as exc:
-            log.warning("%s: not read (%s): its frame rate and length are not used", path, exc)
-            return None, None
-        values: dict[str, float | None] = {}
-        for key in ("frameRate", "seqLength"):
-            raw = parser.get("Sequence", key, fallback=None)
-            try:
-                v = None if raw is None else float(raw)
-            except ValueError:
-                v = None
-            if raw is not None and (v is None or not math.isfinite(v) or v <= 0):
-                log.warning("%s: [Sequence] %s = %r is not a number > 0: not used", path, key, raw)
-                v = None
-            values[key] = v
-        length = values["seqLength"]
-        return values["frameRate"], None if length is None else int(length)
-    return None, None
+            v = None if raw is None else float(raw)
+        except ValueError:
+            v = None
+        if raw is not None and (v is None or not math.isfinite(v) or v <= 0):
+            log.warning("%s: [Sequence] %s = %r is not a number > 0: not used", path, key, raw)
+            v = None
+        values[key] = v
+    length = values["seqLength"]
+    return values["frameRate"], None if length is None else int(length)
 
 
 def _convert(px: np.ndarray, encoding: str, where: str) -> np.ndarray:
@@ -449,19 +492,24 @@ def open_frames(input_path: str, encoding: str = "auto", fps: float | None = Non
         raise InputError(f"{path}: no such file or folder")
     if path.is_dir():
         files = _frame_files(path)
-        if not files and (path / "img1").is_dir():  # a MOT sequence folder
-            path = path / "img1"
-            files = _frame_files(path)
+        described: tuple[Path, dict[str, str]] | None = None
+        if files:
+            described = _describing_section(path)
+        else:  # a MOT sequence folder: the frames are in its image folder
+            images, section = _image_folder(path)
+            if images is not None:
+                described = None if section is None else (path / SEQINFO_NAME, section)
+                path, files = images, _frame_files(images)
         if not files:
             video = next((path / n for n in VIDEO_NAMES if (path / n).is_file()), None)
             if video is None:
                 raise InputError(
-                    f"{path}: no frames ({', '.join(FRAME_SUFFIXES)} files), no img1/ and no "
-                    f"{' or '.join(VIDEO_NAMES)} in this folder"
+                    f"{path}: no frames ({', '.join(FRAME_SUFFIXES)} files), no img1/ (nor a seqinfo.ini's imDir) "
+                    f"and no {' or '.join(VIDEO_NAMES)} in this folder"
                 )
             path = video
         else:
-            seq_rate, seq_length = _seqinfo(path)
+            seq_rate, seq_length = _seqinfo(*described) if described is not None else (None, None)
             rate = fps if fps is not None else seq_rate if seq_rate is not None else DEFAULT_FOLDER_FPS
             converted_from: set[str] = set()
             files, numbers = _numbered(path, files)

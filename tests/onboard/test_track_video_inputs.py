@@ -124,6 +124,45 @@ def test_frames_smaller_than_the_chain_takes_are_refused_in_the_tools_words(tmp_
     assert err.startswith(f"{seq / '000001.png'}: frame of 8 x 8 px: frames must be at least 16 x 16 px"), err
 
 
+# --------------------------------------------------------------------------- a MOT sequence's seqinfo.ini
+
+
+def _mot_sequence(seq: Path, im_dir: str | None, frames_in: str) -> Path:
+    """A MOT sequence folder: seqinfo.ini (at 12 frames/s, its imDir ``im_dir`` or none) and three frames in
+    ``frames_in``."""
+    seq.mkdir()
+    _folder(seq / frames_in, [f"{n:06d}.png" for n in (1, 2, 3)])
+    key = "" if im_dir is None else f"imDir={im_dir}\n"
+    (seq / "seqinfo.ini").write_text(f"[Sequence]\nname={seq.name}\n{key}frameRate=12\nseqLength=3\nimExt=.png\n")
+    return seq
+
+
+@pytest.mark.parametrize(("im_dir", "frames_in"), [("images", "images"), (None, "img1"), ("img1", "img1")])
+def test_the_frames_are_in_the_folder_seqinfo_names(tmp_path, im_dir, frames_in):
+    seq = _mot_sequence(tmp_path / "MOT-01", im_dir, frames_in)
+    src = open_frames(str(seq))
+    assert src.path == seq / frames_in and src.fps == 12.0 and [p.name for p in src.files][0] == "000001.png"
+    # the image folder given itself: its sequence's seqinfo.ini still gives the rate
+    assert open_frames(str(seq / frames_in)).fps == 12.0
+
+
+@pytest.mark.parametrize(
+    ("im_dir", "why"),
+    [
+        ("../elsewhere", "not a folder inside the sequence folder"),
+        ("/tmp", "not a folder inside the sequence folder"),
+        ("pictures", "no such folder in"),
+    ],
+)
+def test_an_imdir_outside_the_sequence_or_missing_is_one_line_naming_the_key(tmp_path, capsys, im_dir, why):
+    seq = _mot_sequence(tmp_path / "MOT-02", im_dir, "img1")
+    (tmp_path / "elsewhere").mkdir()
+    assert main([str(seq), "--out", str(tmp_path / "t.txt"), "--quiet"]) == EXIT_INPUT
+    err = capsys.readouterr().err
+    assert err.startswith(f"{seq / 'seqinfo.ini'}: [Sequence] imDir = {im_dir!r}: {why}"), err
+    assert len(err.splitlines()) == 1
+
+
 # --------------------------------------------------------------------------- --out naming an input
 
 
