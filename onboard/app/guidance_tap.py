@@ -190,6 +190,7 @@ class GuidanceTap:
             mode=None if link is None else link.autopilot_mode,
             pose=self._pose,
             advice=None if advice is None else (advice[0], advice[1]),
+            heartbeat_age_s=math.inf if link is None else link.heartbeat_age_s(),
         )
         if decision.state != self._last_state:
             level = logging.WARNING if decision.state == "stopped" else logging.INFO

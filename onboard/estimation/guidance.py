@@ -121,6 +121,7 @@ class GuidanceConfig:
     geofence_east_m: Annotated[tuple[float, float], Numbers(2)] = (-300.0, 300.0)
     speed_margin_mps: Annotated[float, Number(0.0, 50.0)] = 2.0
     pose_timeout_s: Annotated[float, Number(0.1, 60.0)] = 1.0
+    heartbeat_timeout_s: Annotated[float, Number(1.5, 60.0)] = 2.5
 
     def __post_init__(self) -> None:
         if self.min_speed_mps > self.max_speed_mps:
@@ -683,21 +684,23 @@ class SetpointGate:
     time, the link state, the autopilot's heartbeat mode, the vehicle's newest position and velocity and the
     advice in force; :meth:`step` says whether to send it.
 
-    Sends only while the link is connected, the heartbeat reports ``accept_autopilot`` / ``accept_custom_mode``
-    (armed when ``require_armed``), the vehicle is inside the geofence box and the altitude band, not faster than
-    ``max_speed_mps + speed_margin_mps``, its pose newer than ``pose_timeout_s`` and the advice still valid.  A limit
-    reached or the link lost while sending stops it (``stopped``, latched, ``why`` says which): for
-    :data:`BRAKE_S` the setpoint is zero velocity (the vehicle holds where it is instead of flying the last
-    setpoint on until the autopilot's timeout: 3 s, 36 m at 12 m/s on ArduCopter), then nothing; setpoints resume
-    only after the autopilot has left the accepting mode (the pilot took over) and re-entered it.  The advice ending
-    (expired, none in force, a target lost) brakes the same way, unlatched: the next advice is sent.  Where the
-    accepting autopilot is PX4, whose OFFBOARD mode needs the stream to go on, the setpoint between advices is zero
-    velocity at the setpoint rate (``holding``) instead.  :meth:`halt` brakes for a daemon that stops.  A gate that first
-    sees the autopilot already in the accepting mode (a daemon restarted in flight) starts stopped too: the hand-over
-    is the pilot's entering the mode while this daemon watches.  A link that comes back after a loss is such a start
-    (the pilot may have left and re-entered the mode unheard): the first heartbeat after it decides the same way,
-    and a gate that was commanding when the link was lost is stopped already (``link_lost``) and stays so.  The autopilot's own failsafe handles a setpoint
-    stream that stops (ArduPilot GUIDED holds after its velocity timeout, PX4 leaves OFFBOARD): deploy/README.md.
+    Sends only while the link is connected and its newest heartbeat is not older than ``heartbeat_timeout_s``
+    (a few of the autopilot's heartbeat periods, sooner than the link's own ``mavlink.heartbeat_timeout_s``), the heartbeat
+    reports ``accept_autopilot`` / ``accept_custom_mode`` (armed when ``require_armed``), the vehicle is inside the
+    geofence box and the altitude band, not faster than ``max_speed_mps + speed_margin_mps``, its pose newer than
+    ``pose_timeout_s`` and the advice still valid.  A limit reached or the link lost while sending stops it
+    (``stopped``, latched, ``why`` says which): for :data:`BRAKE_S` the setpoint is zero velocity (the vehicle holds
+    where it is instead of flying the last setpoint on until the autopilot's timeout: 3 s, 36 m at 12 m/s on
+    ArduCopter), then nothing; setpoints resume only after the autopilot has left the accepting mode (the pilot took
+    over) and re-entered it.  The advice ending (expired, none in force, a target lost) brakes the same way,
+    unlatched: the next advice is sent.  Where the accepting autopilot is PX4, whose OFFBOARD mode needs the stream
+    to go on, the setpoint between advices is zero velocity at the setpoint rate (``holding``) instead.
+    :meth:`halt` brakes for a daemon that stops.  A gate that first sees the autopilot already in the accepting mode
+    (a daemon restarted in flight) starts stopped too: the hand-over is the pilot's entering the mode while this
+    daemon watches.  A link that comes back after a loss is such a start (the pilot may have left and re-entered the
+    mode unheard): the first heartbeat after it decides the same way, and a gate that was commanding when the link
+    was lost is stopped already (``link_lost``) and stays so.  The autopilot's own failsafe handles a setpoint stream
+    that stops (ArduPilot GUIDED holds after its velocity timeout, PX4 leaves OFFBOARD): deploy/README.md.
     """
 
     def __init__(self, config: GuidanceConfig) -> None:
@@ -756,13 +759,19 @@ class SetpointGate:
         mode: tuple[int, int, int] | None,
         pose: tuple[float, np.ndarray, np.ndarray] | None,
         advice: tuple[float, np.ndarray] | None,
+        heartbeat_age_s: float = 0.0,
     ) -> SetpointDecision:
         """``pose``: (when it came, s on ``now_s``'s clock; position (3,) NED m; velocity (3,) NED m/s) or None;
-        ``advice``: (valid until, s on the same clock; velocity (3,) NED m/s) or None."""
+        ``advice``: (valid until, s on the same clock; velocity (3,) NED m/s) or None; ``heartbeat_age_s``: how
+        long ago the autopilot's newest heartbeat came (a NaN: never)."""
         if not self.config.enabled:
             return SetpointDecision(False, None, "off", self.why)
-        accepting = link_connected and self._accepting(mode)
-        if not link_connected:  # the pilot may switch modes while nothing is heard: the link's return decides afresh
+        # the link's own timeout (mavlink.heartbeat_timeout_s) is for the telemetry; a vehicle being commanded may
+        # not wait that long for an autopilot it no longer hears
+        unheard = link_connected and not heartbeat_age_s <= self.config.heartbeat_timeout_s
+        link_up = link_connected and not unheard
+        accepting = link_up and self._accepting(mode)
+        if not link_up:  # the pilot may switch modes while nothing is heard: the link's return decides afresh
             self._mode_seen = False
         elif mode is not None and not self._mode_seen:
             self._mode_seen = True
@@ -776,18 +785,20 @@ class SetpointGate:
                 )
             self._link_was_up = True
         if self.state == "stopped":
-            if link_connected and not accepting:  # the pilot took the vehicle back: re-arm the gate
+            if link_up and not accepting:  # the pilot took the vehicle back: re-arm the gate
                 self._brake_until_s = -math.inf
                 self.state, self.why = "not_accepting", "the autopilot left the accepting mode after a stop"
-            elif (accepting or not link_connected) and now_s < self._brake_until_s:
+            elif (accepting or not link_up) and now_s < self._brake_until_s:
                 # without heartbeats the mode is unknown: zero velocity is harmless in any other mode
                 return SetpointDecision(True, np.zeros(3), self.state, self.why)
             return SetpointDecision(False, None, self.state, self.why)
         was_sending = self._commanding(now_s)
-        if not link_connected:
+        if not link_up:
             if was_sending:
-                return self._stop("link_lost: no autopilot heartbeat", now_s)
-            self.state, self.why = "waiting", "no autopilot link"
+                since = " for guidance.heartbeat_timeout_s" if unheard else ""
+                return self._stop(f"link_lost: no autopilot heartbeat{since}", now_s)
+            self.state = "waiting"
+            self.why = "no autopilot heartbeat for guidance.heartbeat_timeout_s" if unheard else "no autopilot link"
             return SetpointDecision(False, None, self.state, self.why)
         if not accepting:
             if was_sending:

@@ -928,6 +928,10 @@ class MavlinkLink:
 
     # ------------------------------------------------------------------ queries
 
+    def heartbeat_age_s(self) -> float:
+        """How long ago the autopilot's newest heartbeat came, s on the link's clock (inf before the first)."""
+        return math.inf if self._last_hb_rx_s is None else self._now() - self._last_hb_rx_s
+
     def to_boot_us(self, local_ns: int) -> int | None:
         """A ``clock_ns`` time (e.g. a frame stamp) on the autopilot boot clock; None until TIMESYNC converged."""
         return self.clock_sync.to_boot_us(local_ns)

@@ -305,7 +305,11 @@ def test_tap_sends_the_advice_in_force_to_the_autopilot_only_through_the_gate():
     assert tap is not None and tap.in_loop
     sent: list = []
     link = SimpleNamespace(
-        state="connected", autopilot_mode=LOITER, send_setpoint=lambda v: sent.append(v) or True, home_alt_amsl_m=0.0
+        state="connected",
+        autopilot_mode=LOITER,
+        send_setpoint=lambda v: sent.append(v) or True,
+        home_alt_amsl_m=0.0,
+        heartbeat_age_s=lambda: 0.0,
     )
     tap.setpoint_step(now[0] - 10.0, link)  # the link has told where home is (#33), before the first frame
     cam = np.array([0.0, 40.0, -60.0])
@@ -401,6 +405,50 @@ def test_a_link_that_comes_back_in_the_accepting_mode_waits_for_the_pilot_to_han
     assert gate.stops == {"handover": 1, "link_lost": 1}
 
 
+def test_setpoints_stop_once_the_autopilots_heartbeat_is_older_than_the_guidance_timeout():
+    """The gate took the link as up until mavlink.heartbeat_timeout_s (5 s): setpoints went on for 5 s after the
+    autopilot's heartbeats stopped.  guidance.heartbeat_timeout_s brakes and stops sooner, as a lost link does."""
+    from onboard.estimation.guidance import SetpointGate
+
+    with pytest.raises(SchemaError, match="heartbeat_timeout_s"):
+        build(GuidanceConfig, {"heartbeat_timeout_s": 1.0})  # a 1 Hz heartbeat a little late would stop it
+    assert GuidanceConfig().heartbeat_timeout_s == 2.5
+    gate = SetpointGate(build(GuidanceConfig, {"enabled": True}))
+    pose = (0.0, np.array([0.0, 0.0, -60.0]), np.zeros(3))
+    advice = (100.0, np.array([3.0, 0.0, 0.0]))
+
+    def step(now, mode, age):
+        return gate.step(now, link_connected=True, mode=mode, pose=(now, *pose[1:]), advice=advice, heartbeat_age_s=age)
+
+    assert step(0.0, LOITER, 0.3).state == "not_accepting"
+    assert step(0.5, GUIDED, 0.2).send
+    assert step(2.75, GUIDED, 2.45).send  # the heartbeats stopped at 0.3 s
+    d = step(3.0, GUIDED, 2.7)  # the link is still "connected" (it waits 5 s): the gate does not
+    assert d.send and not d.v_ned_mps.any() and d.state == "stopped"
+    assert d.why == "link_lost: no autopilot heartbeat for guidance.heartbeat_timeout_s"
+    assert step(3.75, GUIDED, 3.45).send  # the brake: zero velocity for BRAKE_S
+    assert not step(4.25, GUIDED, 3.95).send
+    assert not step(4.5, GUIDED, 0.0).send and gate.state == "stopped"  # heard again: latched until the hand-over
+    assert gate.stops == {"link_lost": 1}
+    idle = SetpointGate(build(GuidanceConfig, {"enabled": True}))
+    idle.step(0.0, link_connected=True, mode=LOITER, pose=pose, advice=None, heartbeat_age_s=0.0)
+    d = idle.step(0.1, link_connected=True, mode=GUIDED, pose=pose, advice=advice, heartbeat_age_s=math.nan)
+    assert not d.send and d.why == "no autopilot heartbeat for guidance.heartbeat_timeout_s"  # a NaN age: unheard
+
+    now = [100.0]  # the tap asks the link how old its newest heartbeat is
+    tap, link, sent = _in_loop_tap(now)
+    age = [0.0]
+    link.heartbeat_age_s = lambda: age[0]
+    tap._pose = (now[0], np.array([0.0, 0.0, -60.0]), np.zeros(3))
+    tap._advice = (now[0] + 3.0, np.array([1.0, 0.0, 0.0]), None)
+    link.autopilot_mode = GUIDED
+    assert tap.setpoint_step(now[0], link) and sent[-1][0] == 1.0
+    age[0] = 2.6
+    tap._pose = (now[0] + 0.5, *tap._pose[1:])
+    assert tap.setpoint_step(now[0] + 0.5, link) and not sent[-1].any()
+    assert tap.status()["setpoints"]["stops"] == {"link_lost": 1}
+
+
 def test_an_unknown_vehicle_velocity_stops_the_setpoints():
     from onboard.estimation.guidance import SetpointGate
 
@@ -424,7 +472,11 @@ def _in_loop_tap(now):
     tap = make_guidance_tap(build_cfg(OnboardConfig, {"guidance": {"enabled": True}}), clock=lambda: now[0])
     sent: list = []
     link = SimpleNamespace(
-        state="connected", autopilot_mode=LOITER, send_setpoint=lambda v: sent.append(v) or True, home_alt_amsl_m=0.0
+        state="connected",
+        autopilot_mode=LOITER,
+        send_setpoint=lambda v: sent.append(v) or True,
+        home_alt_amsl_m=0.0,
+        heartbeat_age_s=lambda: 0.0,
     )
     tap.setpoint_step(now[0] - 10.0, link)
     return tap, link, sent

@@ -214,6 +214,7 @@ def test_lost_after_heartbeat_timeout_then_recovers_and_rerequests(rig):
     rig.clock.t_s += 4.9
     rig.link.tick()
     assert rig.link.state == LINK_CONNECTED
+    assert rig.link.heartbeat_age_s() == pytest.approx(4.9)  # what the setpoint gate judges by its own timeout
     rig.clock.t_s += 0.2  # 5.1 s without a heartbeat
     rig.link.tick()
     assert rig.link.state == LINK_LOST and rig.counters["autopilot_lost"] == 1
@@ -224,6 +225,7 @@ def test_lost_after_heartbeat_timeout_then_recovers_and_rerequests(rig):
     assert len(rig.ap.commands) == n_before + 2
     st = rig.link.status()
     assert st.link_losses == 1 and st.state == LINK_CONNECTED and st.heartbeat_age_s == 0.0
+    assert rig.link.heartbeat_age_s() == 0.0
 
 
 def test_rate_request_retried_until_accepted_and_refusal_counted(rig):
