@@ -67,6 +67,11 @@ input; SIGTERM (a job's time limit, ``timeout``) is taken as Ctrl-C.
 file it points to is replaced, the link kept.  It must not be an input: the video, a frame of the input folder, or
 any image file in that folder (a later run would read it as a frame).
 
+A long input (3 s or more, and three of the chain's 15-frame confirmation windows) on which no object was
+confirmed ends with one warning saying why that is likely: the chain confirms point targets, peaked over a few
+pixels, so extended targets (an object filling more than a few pixels) and targets too dim against their local
+noise are not confirmed.  It still exits 0 with the empty output: a sky with nothing in it has none.
+
 Exit codes: 0 done; 2 bad input -- a missing path, a seqinfo.ini ``imDir`` refused, a frame that cannot be read,
 frames of mixed size or depth or too small, two frame files of one number, an output that cannot be written or
 naming an input -- in one line naming the file; 130 interrupted by Ctrl-C or SIGTERM (the tracks of the frames done are in the output).
@@ -125,6 +130,10 @@ DEFAULT_IM_DIR = "img1"  # MOT's image folder when seqinfo.ini names none
 #: position.  A benchmark's own numbering steps by 1; a subsampled one (every 10th frame kept) by a few
 MAX_NUMBER_STEP = 30
 PROGRESS_EVERY_S = 5.0
+#: an input this long (and of LONG_INPUT_WINDOWS confirmation windows) on which nothing was confirmed is warned
+#: about: long enough that a point target in it would have been confirmed several times over
+LONG_INPUT_S = 3.0
+LONG_INPUT_WINDOWS = 3
 ENCODINGS = ("auto", "mono8", "mono16")
 FORMATS = ("mot", "anti-uav")
 
@@ -808,6 +817,8 @@ def _main(argv: Sequence[str] | None) -> int:
             json_written = True  # before the write: an interruption in it must not write the document again
             out.writelines(_anti_uav_json(boxes))
         out.commit()
+        if not ids and _long_input(done, src.fps):
+            _say_nothing_confirmed(src.path, done, src.fps, "box" if args.format == "anti-uav" else "line")
         if primary_only and no_primary:
             log.warning(
                 "%s: on %d of %d frames objects were confirmed but none was the primary: the primary is the steady "
@@ -842,6 +853,35 @@ def _main(argv: Sequence[str] | None) -> int:
         f"{args.out} ({wall:.1f} s, {done / max(wall, 1e-9):.0f} frames/s)"
     )
     return EXIT_OK
+
+
+def _long_input(frames: int, fps: float) -> bool:
+    """Whether ``frames`` at ``fps`` are a long input: ``LONG_INPUT_S`` seconds and ``LONG_INPUT_WINDOWS`` of
+    the chain's confirmation windows (a track is confirmed on ``confirm_in_window`` of ``confirm_window``
+    frames)."""
+    from onboard.imaging.objects_model import ObjectParams
+
+    return frames / fps >= LONG_INPUT_S and frames >= LONG_INPUT_WINDOWS * ObjectParams().confirm_window
+
+
+def _say_nothing_confirmed(path: Path, frames: int, fps: float, what: str) -> None:
+    """One warning for a long input on which the chain confirmed no object: an empty output can be right (a
+    sky with nothing in it), but is more often footage whose targets are not the points the chain looks for."""
+    from onboard.imaging.clutter import ClutterParams
+
+    p = ClutterParams()
+    log.warning(
+        "%s: no object confirmed over %d frames (%.1f s at %g frames/s): the output has no %s. The chain confirms "
+        "point targets, brighter at their centre than %d px and %d px away: a target more than a few pixels "
+        "across (an extended one) is not one, nor one too dim against its local noise",
+        path,
+        frames,
+        frames / fps,
+        fps,
+        what,
+        p.sharp_guard_px,
+        p.guard_px,
+    )
 
 
 def _anti_uav_json(boxes: list[list[float]]) -> list[str]:

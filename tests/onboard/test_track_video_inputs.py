@@ -124,6 +124,26 @@ def test_frames_smaller_than_the_chain_takes_are_refused_in_the_tools_words(tmp_
     assert err.startswith(f"{seq / '000001.png'}: frame of 8 x 8 px: frames must be at least 16 x 16 px"), err
 
 
+# --------------------------------------------------------------------------- nothing confirmed
+
+
+@pytest.mark.parametrize("fps", [15.0, 30.0], ids=["3_s", "1.5_s"])
+def test_a_long_input_with_nothing_confirmed_says_why_once_and_exits_0(tmp_path, caplog, fps):
+    """45 frames of noise: at 15 frames/s (3 s, three confirmation windows) the empty output is warned about
+    once, naming the likely causes; at 30 frames/s (1.5 s) it is too short to say.  Exit 0 either way."""
+    seq = _folder(tmp_path / "seq", [f"{n:06d}.png" for n in range(1, 46)])
+    out = tmp_path / "t.txt"
+    assert main([str(seq), "--out", str(out), "--fps", str(fps), "--quiet"]) == EXIT_OK
+    assert out.read_text() == ""
+    warned = [m for m in _records(caplog, logging.WARNING) if "no object confirmed" in m]
+    if fps == 15.0:
+        (line,) = warned
+        assert line.startswith(f"{seq}: no object confirmed over 45 frames (3.0 s at 15 frames/s)"), line
+        assert "more than a few pixels" in line and "too dim" in line
+    else:
+        assert warned == []
+
+
 # --------------------------------------------------------------------------- a MOT sequence's seqinfo.ini
 
 
