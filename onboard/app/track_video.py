@@ -35,7 +35,10 @@ Frames whose confirmed objects are all farther have no line, which a warning at 
 ``--format anti-uav`` writes the Anti-UAV toolkit's result instead (its ``eval`` reads it as a sequence's
 ``.txt``): ``{"res": [...]}``, one entry per frame from 1 to the last, the primary's ``[x, y, w, h]`` in 0-based
 pixels (its ``gt_rect``'s) or ``[]`` where there is none (the toolkit's "absent"; a frame missing from a folder's
-numbering too).
+numbering too).  With Anti-UAV's label file beside the input (``IR_label.json`` beside ``IR.mp4`` or in the frames'
+folder; the 2021 edition's ``infrared.json`` beside ``infrared.mp4``), ``res`` is padded with ``[]`` to the
+frames it labels (the toolkit's scorer pairs them in order and stops at the shorter), and a ``res`` longer than
+they is warned about.
 
 Frame numbers.  A video's frames are numbered as decoded, from 1.  In a folder whose frame names all end in a
 number behind one common prefix (``000001.png``, ``17.png``, ``frame_000001.png``, ``img0000001.jpg``: the MOT and
@@ -123,6 +126,9 @@ EXIT_OK, EXIT_INPUT, EXIT_INTERRUPTED = 0, 2, 130
 FRAME_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg", ".bmp")
 #: the video a benchmark's sequence folder holds instead of frames (Anti-UAV: IR.mp4, its 2021 edition infrared.mp4)
 VIDEO_NAMES = ("IR.mp4", "infrared.mp4")
+#: Anti-UAV's label file beside its video or in its frames' folder, ``{"exist": [0 or 1 a frame], "gt_rect": [[x,
+#: y, w, h] or [] a frame], ...}``: IR_label.json (the 2020 edition and Anti-UAV410), infrared.json (2021)
+LABEL_NAMES = {"IR.mp4": "IR_label.json", "infrared.mp4": "infrared.json"}
 DEFAULT_FOLDER_FPS = 30.0
 SEQINFO_NAME = "seqinfo.ini"
 DEFAULT_IM_DIR = "img1"  # MOT's image folder when seqinfo.ini names none
@@ -814,6 +820,7 @@ def _main(argv: Sequence[str] | None) -> int:
         if done == 0:
             raise InputError(f"{src.path}: no frames")
         if args.format == "anti-uav":
+            _fit_to_labels(boxes, src, args.out)
             json_written = True  # before the write: an interruption in it must not write the document again
             out.writelines(_anti_uav_json(boxes))
         out.commit()
@@ -882,6 +889,55 @@ def _say_nothing_confirmed(path: Path, frames: int, fps: float, what: str) -> No
         p.sharp_guard_px,
         p.guard_px,
     )
+
+
+def _anti_uav_labels(src: FrameSource) -> tuple[Path, int] | None:
+    """Anti-UAV's label file of ``src`` (:data:`LABEL_NAMES`: beside its IR.mp4 / infrared.mp4, or in its frames'
+    folder) and the frames it scores: the shorter of its ``exist`` and ``gt_rect`` lists, as its scorer zips them
+    with ``res``; None when there is none, or (with a warning naming it) when it cannot be read."""
+    if src.kind == "video":
+        label = LABEL_NAMES.get(src.path.name)
+        candidates = [] if label is None else [src.path.parent / label]
+    else:
+        candidates = [src.path / name for name in LABEL_NAMES.values()]
+    for path in candidates:
+        if not path.is_file():
+            continue
+        try:
+            doc = json.loads(path.read_text(encoding="utf-8"))
+        except (OSError, ValueError) as exc:
+            log.warning("%s: not read (%s): res is not fitted to its frames", path, exc)
+            return None
+        lists = [doc[k] for k in ("exist", "gt_rect") if isinstance(doc, dict) and isinstance(doc.get(k), list)]
+        if not lists:
+            log.warning("%s: no 'exist' or 'gt_rect' list: res is not fitted to its frames", path)
+            return None
+        return path, min(len(v) for v in lists)
+    return None
+
+
+def _fit_to_labels(boxes: list[list[float]], src: FrameSource, out: str) -> None:
+    """``boxes`` (res) padded with ``[]`` (absent) to the frames Anti-UAV's label file beside the input scores,
+    or a warning when res is longer.  The toolkit's scorer zips res with the label's lists and stops at the
+    shortest: a res cut short (frames missing at the end of a folder's numbering, a video that decoded short)
+    would silently leave the last labelled frames unscored, and a longer one its extra entries."""
+    labels = _anti_uav_labels(src)
+    if labels is None:
+        return
+    path, n = labels
+    if len(boxes) < n:
+        log.info("%s: res padded with %d empty entries to the %d frames %s labels", out, n - len(boxes), n, path)
+        boxes.extend([] for _ in range(n - len(boxes)))
+    elif len(boxes) > n:
+        log.warning(
+            "%s: res has %d entries, %s labels %d frames: Anti-UAV's scorer pairs them in order and leaves out "
+            "the last %d entries (frames the labels do not have, or a numbering that does not match theirs)",
+            out,
+            len(boxes),
+            path,
+            n,
+            len(boxes) - n,
+        )
 
 
 def _anti_uav_json(boxes: list[list[float]]) -> list[str]:

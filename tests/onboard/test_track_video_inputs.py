@@ -5,6 +5,7 @@ input is a few tiny synthetic frames written here (OpenCV PNGs, PyAV videos); th
 
 from __future__ import annotations
 
+import json
 import logging
 from pathlib import Path
 
@@ -292,3 +293,57 @@ def test_names_that_are_times_are_numbered_by_position_and_said(tmp_path, monkey
 def test_a_subsampled_numbering_keeps_its_numbers(tmp_path, monkeypatch):
     seq = _folder(tmp_path / "seq", [f"{n:06d}.png" for n in (1, 11, 21, 31)])  # every 10th frame kept
     assert _frame_numbers_written(monkeypatch, tmp_path, seq) == [1, 11, 21, 31]
+
+
+# --------------------------------------------------------------------------- Anti-UAV's label file
+
+
+def _labels(path: Path, frames: int) -> Path:
+    """Anti-UAV's label file (``exist``, ``gt_rect``, one entry a frame) for ``frames`` frames."""
+    path.write_text(json.dumps({"exist": [1] * frames, "gt_rect": [[10, 10, 4, 4]] * frames}))
+    return path
+
+
+@pytest.mark.parametrize("labelled", [8, 5, 3])
+def test_an_anti_uav_res_is_padded_to_its_label_files_frames(tmp_path, caplog, labelled):
+    """Anti-UAV410's layout (frames and IR_label.json in one folder): the toolkit's scorer zips res with
+    ``exist`` and ``gt_rect``, so a res shorter than the labels (the last frames missing from the folder) would
+    leave their frames unscored: it is padded with ``[]`` (absent); a longer one is warned about."""
+    seq = _folder(tmp_path / "02_6319", [f"{n:06d}.png" for n in range(1, 6)])
+    label = _labels(seq / "IR_label.json", labelled)
+    out = tmp_path / "02_6319.txt"
+    assert main([str(seq), "--out", str(out), "--format", "anti-uav"]) == EXIT_OK
+    res = json.loads(out.read_text())["res"]
+    assert res == [[]] * max(labelled, 5)  # noise: nothing confirmed
+    warned = _records(caplog, logging.WARNING)
+    if labelled < 5:
+        (line,) = warned
+        assert line.startswith(f"{out}: res has 5 entries, {label} labels 3 frames"), line
+    else:
+        assert warned == []
+        padded = [m for m in _records(caplog, logging.INFO) if "padded" in m]
+        assert padded == (
+            [f"{out}: res padded with 3 empty entries to the 8 frames {label} labels"] if labelled > 5 else []
+        )
+
+
+@pytest.mark.parametrize(("video", "label"), [("IR.mp4", "IR_label.json"), ("infrared.mp4", "infrared.json")])
+def test_a_video_s_res_is_padded_to_the_label_file_beside_it(tmp_path, video, label):
+    seq = tmp_path / "20190925_101846_1_1"
+    seq.mkdir()
+    _write_video(seq / video, [_noise(k) for k in range(4)])
+    _labels(seq / label, 7)
+    for given in (seq, seq / video):  # the sequence folder or its video
+        out = tmp_path / "res.txt"
+        assert main([str(given), "--out", str(out), "--format", "anti-uav", "--quiet"]) == EXIT_OK
+        assert json.loads(out.read_text())["res"] == [[]] * 7
+
+
+def test_a_label_file_that_cannot_be_read_is_warned_about_and_res_left_as_it_is(tmp_path, caplog):
+    seq = _folder(tmp_path / "seq", [f"{n:06d}.png" for n in range(1, 4)])
+    (seq / "IR_label.json").write_text("{not json")
+    out = tmp_path / "res.txt"
+    assert main([str(seq), "--out", str(out), "--format", "anti-uav", "--quiet"]) == EXIT_OK
+    assert json.loads(out.read_text())["res"] == [[]] * 3
+    (line,) = _records(caplog, logging.WARNING)
+    assert line.startswith(f"{seq / 'IR_label.json'}: not read (") and "res is not fitted" in line
