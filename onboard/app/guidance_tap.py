@@ -173,13 +173,23 @@ class GuidanceTap:
             self.home_alt_amsl_m = home
         if not self.in_loop or now < self._next_setpoint_s:
             return False
-        self._next_setpoint_s = now + 1.0 / self.gate.config.setpoint_rate_hz
+        # on a schedule, not a period from whenever the loop came round: each setpoint's lateness would add to the gap
+        # (PX4's OFFBOARD counts a slow stream as lost); after a stall it starts again from now, without a burst
+        period_s = 1.0 / self.gate.config.setpoint_rate_hz
+        scheduled_s = self._next_setpoint_s + period_s
+        self._next_setpoint_s = scheduled_s if scheduled_s > now else now + period_s
         try:
             return self._setpoint_step(now, link)
         except Exception as exc:  # noqa: BLE001 - the main loop must go on; counted in the status, logged once
             self.setpoint_errors += 1
             self._log_failure_once("setpoint", "setpoint step", exc)
             return False
+
+    @property
+    def next_setpoint_s(self) -> float:
+        """When :meth:`setpoint_step` next has a setpoint to decide (the clock's s; inf when not in the loop): the
+        main loop wakes for it."""
+        return self._next_setpoint_s if self.in_loop else math.inf
 
     def _setpoint_step(self, now: float, link: Any) -> bool:
         connected = link is not None and getattr(link, "state", None) == "connected"

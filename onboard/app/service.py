@@ -170,6 +170,8 @@ class OnboardService:
         # the output taps, and the newest track for the main thread (the GCS camera, FOLLOW_TARGET, status)
         self.newest = NewestTrack(clock)
         self.taps: list[FrameObserver] = make_observers(config, self.pipeline.intrinsics, clock_ns, clock)
+        # the taps that act in the loop (guidance: setpoints to the autopilot, on a schedule the loop wakes for)
+        self._setpoint_taps: list[Any] = [tap for tap in self.taps if hasattr(tap, "setpoint_step")]
         self.observers: list[FrameObserver] = [*self.taps, self.newest]
         self.recorder = next((t.recorder for t in self.taps if isinstance(t, RecorderTap)), None)
         self.link: MavlinkLink | None = None  # the autopilot link, opened by start()
@@ -537,8 +539,6 @@ class OnboardService:
         last_cpu = (now, time.process_time(), self._pipeline_cpu_s + self._worker_cpu())
         next_watch = now
         turn_s = now
-        # the taps that act in the loop (guidance: setpoints to the autopilot; never raises), looked up once
-        setpoint_steps = [step for step in (getattr(tap, "setpoint_step", None) for tap in self.taps) if step]
         while not self._stop.is_set() and now < end:
             try:
                 if self.link is not None:  # None until start()
@@ -558,8 +558,8 @@ class OnboardService:
                 self.follow_step(now)
             except Exception as exc:  # noqa: BLE001 - the follow output must not stop the loop
                 self.counter.count("follow_loop_error", f"{type(exc).__name__}: {exc}")
-            for step in setpoint_steps:
-                step(now, self.link)
+            for tap in self._setpoint_taps:
+                tap.setpoint_step(now, self.link)  # never raises
             if now >= next_status or self.watchdog.changes != self._warnings_published:
                 # a warning raised or cleared goes out at once, not up to a status interval later
                 self._warnings_published = self.watchdog.changes
@@ -573,10 +573,11 @@ class OnboardService:
 
     def _idle(self, turn_s: float, period_s: float, next_own_s: float) -> None:
         """Sleep until MAVLink input arrives (the autopilot link, the camera component's endpoints) or the next
-        timer is due (heartbeats, TIMESYNC, the camera's messages, FOLLOW_TARGET, the watchdog, the status), at most
-        ``MAIN_LOOP_MAX_IDLE_S``, turning at most ``mavlink.poll_rate_hz`` times a second (a flood costs no more): a
-        fixed-rate loop woke 200 times a second for nothing, ~0.02 CPU s per s on a companion-class core.  Without a
-        descriptor to wait on (a link being reopened, a test double) the loop turns at ``poll_rate_hz``."""
+        timer is due (heartbeats, TIMESYNC, the camera's messages, FOLLOW_TARGET, guidance setpoints, the watchdog, the
+        status), at most ``MAIN_LOOP_MAX_IDLE_S``, turning at most ``mavlink.poll_rate_hz`` times a second (a flood
+        costs no more): a fixed-rate loop woke 200 times a second for nothing, ~0.02 CPU s per s on a companion-class
+        core.  Without a descriptor to wait on (a link being reopened, a test double) the loop turns at
+        ``poll_rate_hz``."""
         link = self.link
         link_fd = getattr(link, "fileno", lambda: None)()
         fds: list[int] = [] if link_fd is None else [link_fd]
@@ -592,6 +593,8 @@ class OnboardService:
             due_s = min(due_s, self.camera.next_due_s())
         if self.config.follow.enabled:
             due_s = min(due_s, self._next_follow_s)
+        for tap in self._setpoint_taps:  # a setpoint late by an idle turn is a gap PX4's OFFBOARD may count as lost
+            due_s = min(due_s, tap.next_setpoint_s)
         timeout = min(max(due_s - now, 0.0), MAIN_LOOP_MAX_IDLE_S)
         try:
             ready, _, _ = select.select(fds, [], [], timeout)

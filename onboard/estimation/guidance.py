@@ -74,6 +74,10 @@ _V_EPS_MPS = 1e-3
 #: it accepts the mode and for as long as it is in it (else it falls back to COM_OBL_RC_ACT)
 MAV_AUTOPILOT_PX4 = 12
 PX4_MIN_SETPOINT_RATE_HZ = 2.0
+#: the slowest ``setpoint_rate_hz`` taken for PX4: at PX4's own minimum, a setpoint late by one turn of the daemon's
+#: main loop (or a busy CPU) makes a gap PX4 counts as the stream lost; a third of a second between setpoints leaves
+#: a sixth of one to be late by
+PX4_SETPOINT_RATE_FLOOR_HZ = 3.0
 
 
 @config_dataclass
@@ -155,11 +159,11 @@ class GuidanceConfig:
             )
         if self.enabled and not self.advise:  # the loop sends the advice: without it nothing would ever go out
             raise Invalid("enabled", "false while guidance.advise is false (the loop sends the advice)", True)
-        if self.accept_autopilot == MAV_AUTOPILOT_PX4 and self.setpoint_rate_hz <= PX4_MIN_SETPOINT_RATE_HZ:
+        if self.accept_autopilot == MAV_AUTOPILOT_PX4 and self.setpoint_rate_hz < PX4_SETPOINT_RATE_FLOOR_HZ:
             raise Invalid(
                 "setpoint_rate_hz",
-                f"> {PX4_MIN_SETPOINT_RATE_HZ:g} Hz for PX4 (accept_autopilot {MAV_AUTOPILOT_PX4}): OFFBOARD leaves the "
-                "mode when the stream is slower",
+                f">= {PX4_SETPOINT_RATE_FLOOR_HZ:g} Hz for PX4 (accept_autopilot {MAV_AUTOPILOT_PX4}): OFFBOARD leaves "
+                f"the mode when the stream is not faster than {PX4_MIN_SETPOINT_RATE_HZ:g} Hz, and a setpoint can be late",
                 self.setpoint_rate_hz,
             )
 

@@ -337,6 +337,24 @@ def test_tap_sends_the_advice_in_force_to_the_autopilot_only_through_the_gate():
     assert not tap.setpoint_step(now[0] + 1.0, link) and tap.status()["setpoints"]["errors"] == 1
 
 
+def test_setpoints_are_paced_on_a_schedule_so_a_late_turn_does_not_stretch_the_next_gap():
+    """Each setpoint was paced 1/rate from when the main loop came round, so every late turn added to the gap (PX4 at
+    2.1 Hz: gaps up to 0.516 s).  On a schedule a late one is followed by one on time; after a stall no burst."""
+    now = [100.0]
+    tap, link, sent = _in_loop_tap(now)  # 4 Hz
+    tap._pose = (now[0] + 100.0, np.array([0.0, 0.0, -60.0]), np.zeros(3))
+    tap._advice = (now[0] + 100.0, np.array([1.0, 0.0, 0.0]), None)
+    link.autopilot_mode = GUIDED
+    start = tap.next_setpoint_s  # the schedule's step after the first (LOITER) one
+    t = [start + 0.04, start + 0.25, start + 0.51, start + 0.75, start + 5.0, start + 5.01, start + 5.25]
+    fired = [tap.setpoint_step(x, link) for x in t]
+    # late by 40 ms, then on time at +0.25 (was: not before +0.29); a stall of 4 s: one now, the next a period on
+    assert fired == [True, True, True, True, True, False, True]
+    assert tap.next_setpoint_s == pytest.approx(start + 5.5)
+    tap.in_loop = False
+    assert tap.next_setpoint_s == math.inf  # advice only: nothing for the main loop to wake for
+
+
 def test_the_altitude_band_is_above_home_by_default_so_it_holds_at_any_site_elevation():
     """A site 488 m above sea level: a vehicle 60 m above home is inside the default 20-150 m band (it would be
     far above it AMSL); until the autopilot has said where home is, there is no reference and no advice."""
@@ -589,14 +607,18 @@ def test_an_advice_whose_expiry_is_not_a_number_is_no_advice():
     assert not d.send and d.state == "waiting"
 
 
-def test_px4_offboard_holds_between_advices_and_needs_a_stream_over_2_hz():
-    """PX4 leaves OFFBOARD when the setpoint stream stops: between advices the gate sends zero velocity (holding)
-    instead of falling silent, and a configured rate of 2 Hz or less is refused."""
+def test_px4_offboard_holds_between_advices_and_needs_a_stream_with_margin_over_2_hz():
+    """PX4 leaves OFFBOARD when the setpoint stream stops or is not faster than 2 Hz: between advices the gate sends
+    zero velocity (holding) instead of falling silent, and a configured rate below 3 Hz is refused (2.1 Hz was taken:
+    3 of 33 gaps over 0.5 s, each setpoint up to a loop's idle turn late)."""
     from onboard.estimation.guidance import SetpointGate
 
     px4 = {"enabled": True, "accept_autopilot": 12, "accept_custom_mode": 393216}
-    with pytest.raises(SchemaError, match="setpoint_rate_hz"):
-        build(GuidanceConfig, {**px4, "setpoint_rate_hz": 2.0})
+    for hz in (2.0, 2.1, 2.9):
+        with pytest.raises(SchemaError, match="setpoint_rate_hz.*>= 3 Hz for PX4"):
+            build(GuidanceConfig, {**px4, "setpoint_rate_hz": hz})
+    assert build(GuidanceConfig, {**px4, "setpoint_rate_hz": 3.0}).setpoint_rate_hz == 3.0
+    assert build(GuidanceConfig, {"setpoint_rate_hz": 1.0}).setpoint_rate_hz == 1.0  # ArduPilot: its 3 s timeout
     gate = SetpointGate(build(GuidanceConfig, px4))
     offboard = (12, 129, 393216)
     pose = (0.0, np.array([0.0, 0.0, -60.0]), np.zeros(3))

@@ -752,6 +752,31 @@ def test_a_daemon_stopping_while_guidance_commands_the_vehicle_sends_zero_veloci
     assert tap.status()["setpoints"]["state"] == "stopped" and tap.gate.why.startswith("shutdown")
 
 
+def test_the_main_loop_wakes_for_the_next_guidance_setpoint(monkeypatch):
+    """The loop's idle wait counted follow's next time, not guidance's: each setpoint could be up to
+    MAIN_LOOP_MAX_IDLE_S late (PX4 at 2.1 Hz: 3 of 33 gaps over the 0.5 s it takes as the stream lost)."""
+    import socket
+    import types
+
+    import onboard.app.service as service_module
+
+    svc, clock = _quiet_service({"guidance": {"enabled": True}, "estimator": {"enabled": True, "worker": "inline"}})
+    timeouts: list = []
+    select_stub = types.SimpleNamespace(select=lambda r, w, x, timeout: timeouts.append(timeout) or ([], [], []))
+    monkeypatch.setattr(service_module, "select", select_stub)
+    quiet, other = socket.socketpair()
+    try:
+        svc.link.fileno = quiet.fileno
+        svc.link.seconds_to_next_due = lambda: 10.0
+        tap = next(t for t in svc.taps if t.name == "guidance")
+        tap._next_setpoint_s = clock() + 0.02
+        svc._idle(clock(), 0.005, clock() + 10.0)
+        assert timeouts == [pytest.approx(0.02)]
+    finally:
+        quiet.close()
+        other.close()
+
+
 def test_a_liveness_file_that_cannot_be_touched_is_a_warning_in_the_status(tmp_path):
     svc, clock = _quiet_service()
     svc._health_path = str(tmp_path / "gone" / "alive")  # its folder removed under the daemon
