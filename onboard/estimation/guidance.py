@@ -163,7 +163,7 @@ class GuidanceConfig:
             raise Invalid(
                 "setpoint_rate_hz",
                 f">= {PX4_SETPOINT_RATE_FLOOR_HZ:g} Hz for PX4 (accept_autopilot {MAV_AUTOPILOT_PX4}): OFFBOARD leaves "
-                f"the mode when the stream is not faster than {PX4_MIN_SETPOINT_RATE_HZ:g} Hz, and a setpoint can be late",
+                f"the mode unless the stream is faster than {PX4_MIN_SETPOINT_RATE_HZ:g} Hz, and setpoints can be late",
                 self.setpoint_rate_hz,
             )
 
@@ -667,6 +667,8 @@ _MODE_FLAG_ARMED = 128
 #: after sending ends (a stop, the advice over, the daemon stopping), zero-velocity setpoints for this long (then
 #: silence: the autopilot's own timeout)
 BRAKE_S = 1.0
+#: why the gate has no pose to judge: its pose is the one each camera frame got
+_NO_FRAME_POSE = "no camera frame with a measured vehicle position (no frames, none with a pose, or dead reckoning)"
 
 
 @dataclass(frozen=True)
@@ -688,23 +690,24 @@ class SetpointGate:
     time, the link state, the autopilot's heartbeat mode, the vehicle's newest position and velocity and the
     advice in force; :meth:`step` says whether to send it.
 
-    Sends only while the link is connected and its newest heartbeat is not older than ``heartbeat_timeout_s``
-    (a few of the autopilot's heartbeat periods, sooner than the link's own ``mavlink.heartbeat_timeout_s``), the heartbeat
+    Sends only while the link is connected and its newest heartbeat is not older than ``heartbeat_timeout_s`` (a few
+    of the autopilot's heartbeat periods, sooner than the link's own ``mavlink.heartbeat_timeout_s``), the heartbeat
     reports ``accept_autopilot`` / ``accept_custom_mode`` (armed when ``require_armed``), the vehicle is inside the
-    geofence box and the altitude band, not faster than ``max_speed_mps + speed_margin_mps``, its pose newer than
-    ``pose_timeout_s`` and the advice still valid.  A limit reached or the link lost while sending stops it
-    (``stopped``, latched, ``why`` says which): for :data:`BRAKE_S` the setpoint is zero velocity (the vehicle holds
-    where it is instead of flying the last setpoint on until the autopilot's timeout: 3 s, 36 m at 12 m/s on
-    ArduCopter), then nothing; setpoints resume only after the autopilot has left the accepting mode (the pilot took
-    over) and re-entered it.  The advice ending (expired, none in force, a target lost) brakes the same way,
-    unlatched: the next advice is sent.  Where the accepting autopilot is PX4, whose OFFBOARD mode needs the stream
-    to go on, the setpoint between advices is zero velocity at the setpoint rate (``holding``) instead.
-    :meth:`halt` brakes for a daemon that stops.  A gate that first sees the autopilot already in the accepting mode
-    (a daemon restarted in flight) starts stopped too: the hand-over is the pilot's entering the mode while this
-    daemon watches.  A link that comes back after a loss is such a start (the pilot may have left and re-entered the
-    mode unheard): the first heartbeat after it decides the same way, and a gate that was commanding when the link
-    was lost is stopped already (``link_lost``) and stays so.  The autopilot's own failsafe handles a setpoint stream
-    that stops (ArduPilot GUIDED holds after its velocity timeout, PX4 leaves OFFBOARD): deploy/README.md.
+    geofence box and the altitude band, not faster than ``max_speed_mps + speed_margin_mps``, its pose (the newest
+    camera frame's) newer than ``pose_timeout_s`` and the advice still valid.  A limit reached or the link lost
+    while sending stops it (``stopped``, latched, ``why`` says which): for :data:`BRAKE_S` the setpoint is zero
+    velocity (the vehicle holds where it is instead of flying the last setpoint on until the autopilot's timeout:
+    3 s, 36 m at 12 m/s on ArduCopter), then nothing; setpoints resume only after the autopilot has left the accepting
+    mode (the pilot took over) and re-entered it.  The advice ending (expired, none in force, a target lost) brakes
+    the same way, unlatched: the next advice is sent.  Where the accepting autopilot is PX4, whose OFFBOARD mode
+    needs the stream to go on, the setpoint between advices is zero velocity at the setpoint rate (``holding``)
+    instead.  :meth:`halt` brakes for a daemon that stops.  A gate that first sees the autopilot already in the
+    accepting mode (a daemon restarted in flight) starts stopped too: the hand-over is the pilot's entering the mode
+    while this daemon watches.  A link that comes back after a loss is such a start (the pilot may have left and
+    re-entered the mode unheard): the first heartbeat after it decides the same way, and a gate that was commanding
+    when the link was lost is stopped already (``link_lost``) and stays so.  The autopilot's own failsafe handles a
+    setpoint stream that stops (ArduPilot GUIDED holds after its velocity timeout, PX4 leaves OFFBOARD):
+    deploy/README.md.
     """
 
     def __init__(self, config: GuidanceConfig) -> None:
@@ -813,10 +816,12 @@ class SetpointGate:
             self._brake_until_s = -math.inf  # the pilot's: nothing more is sent
             return SetpointDecision(False, None, self.state, self.why)
         brake = now_s if was_sending else None
-        if pose is None or now_s - pose[0] > self.config.pose_timeout_s:
+        # the pose comes with the camera's frames, so a camera that stops stops the setpoints too, telemetry or not
+        # (the advice in force is about a target no longer seen); a stamp that is not a number is not a recent one
+        if pose is None or not now_s - pose[0] <= self.config.pose_timeout_s:
             if was_sending:
-                return self._stop("pose_lost: no measured vehicle position for guidance.pose_timeout_s", brake)
-            self.state, self.why = "waiting", "no recent vehicle pose"
+                return self._stop(f"pose_lost: {_NO_FRAME_POSE} within guidance.pose_timeout_s", brake)
+            self.state, self.why = "waiting", _NO_FRAME_POSE
             return SetpointDecision(False, None, self.state, self.why)
         limit = self._limit(np.asarray(pose[1], float), np.asarray(pose[2], float))
         if limit:

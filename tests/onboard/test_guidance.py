@@ -527,6 +527,31 @@ def test_a_pose_dead_reckoned_through_a_gnss_outage_is_not_fresh_for_the_gate():
     assert tap.status()["setpoints"]["why"].startswith("pose_lost")
 
 
+def test_a_camera_gap_stops_the_setpoints_saying_so_and_a_pose_stamp_that_is_not_a_number_is_not_recent():
+    """The gate's pose comes with the frames: a camera gap over pose_timeout_s stopped it with "no measured vehicle
+    position" while the telemetry was fine.  And a NaN stamp passed ``now - t > timeout`` as recent."""
+    from onboard.app.observers import FrameResult
+    from onboard.estimation.guidance import SetpointGate
+
+    now = [100.0]
+    tap, link, sent = _in_loop_tap(now)
+    tap.on_frame(None, FrameResult(0, True, _pose(), None, None))
+    tap._advice = (now[0] + 3.0, np.array([1.0, 0.0, 0.0]), None)
+    link.autopilot_mode = GUIDED
+    assert tap.setpoint_step(now[0], link) and sent[-1][0] == 1.0
+    now[0] += 1.25  # no frame since: the link and its telemetry are fine
+    assert tap.setpoint_step(now[0], link) and not sent[-1].any()
+    why = tap.status()["setpoints"]["why"]
+    assert why.startswith("pose_lost: no camera frame with a measured vehicle position") and "no frames" in why
+
+    gate = SetpointGate(build(GuidanceConfig, {"enabled": True}))
+    p = np.array([0.0, 0.0, -60.0])
+    advice = (10.0, np.array([3.0, 0.0, 0.0]))
+    gate.step(0.0, link_connected=True, mode=LOITER, pose=None, advice=None)
+    d = gate.step(0.1, link_connected=True, mode=GUIDED, pose=(math.nan, p, np.zeros(3)), advice=advice)
+    assert not d.send and d.state == "waiting" and d.why.startswith("no camera frame")
+
+
 def test_a_newer_answer_or_another_target_ends_the_advice_in_force():
     """The advice in force was replaced only by a newer recommended one: after an 'observable' answer, a lost target
     or a switch to another, the old manoeuvre kept going out for up to valid_for_s."""
