@@ -161,7 +161,7 @@ class LiveViewTap:
         return self.live_view.stats()
 
     def close(self, timeout_s: float) -> None:
-        self.live_view.close()
+        self.live_view.close(timeout_s)
 
 
 class VideoTap:

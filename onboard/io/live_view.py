@@ -43,6 +43,7 @@ import json
 import logging
 import math
 import threading
+import time
 from typing import TYPE_CHECKING, Annotated, Any
 
 import numpy as np
@@ -268,10 +269,23 @@ class LiveView:
         return int(self._server.port) if self._server is not None else self._bind_port
 
     def close(self, timeout_s: float = 2.0) -> None:
+        """Stop the publisher thread, then the server, both within ``timeout_s``.  The SDK's ``stop`` waits for
+        every client's connection to close, which a client that stopped reading (its TCP window full) holds up
+        indefinitely: it runs on a thread of its own, and one still running at the deadline is left to end with
+        the process (one WARNING), so that the daemon's shutdown keeps its budget."""
+        deadline_s = time.monotonic() + timeout_s
         stop_and_join(self._cond, self._stop, self._thread, timeout_s)
-        if self._server is not None:
-            self._server.stop()
-            self._server = None
+        server, self._server = self._server, None
+        if server is None:
+            return
+        stopper = threading.Thread(target=server.stop, name="irtrack-live-view-stop", daemon=True)
+        stopper.start()
+        stopper.join(max(deadline_s - time.monotonic(), 0.0))
+        if stopper.is_alive():
+            log.warning(
+                "live view: the server did not stop within %.1f s (a client not reading?); left to end with the process",
+                timeout_s,
+            )
 
     def stats(self) -> dict[str, Any]:
         with self._cond:

@@ -7,6 +7,7 @@ server in-process and to a daemon started with --live-view in a closed loop with
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import os
 import signal
@@ -332,3 +333,89 @@ def test_the_sdks_per_message_client_errors_stay_out_of_the_daemons_log():
         root.handlers[:] = saved[0]
         root.setLevel(saved[1])
         logging.getLogger("foxglove.websocket").setLevel(logging.NOTSET)
+
+
+# --------------------------------------------------------------------------- clients that misbehave
+
+
+@contextlib.contextmanager
+def _subscribed_client(port: int, topics: set[str], rcvbuf_bytes: int = 4096):
+    """A plain WebSocket client (websockets' sync client on a socket with a small receive buffer) subscribed to
+    ``topics``; the caller reads from it or, to play a viewer that stopped reading, never does (the client's own
+    reader stops at ``max_queue`` frames, then the socket's buffers fill).  Its connection is cut at the end."""
+    import socket
+
+    from websockets.sync.client import connect
+
+    sock = socket.socket()
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf_bytes)
+    sock.settimeout(WS_TIMEOUT_S)
+    sock.connect(("127.0.0.1", port))
+    with connect(
+        f"ws://127.0.0.1:{port}", sock=sock, subprotocols=SUBPROTOCOLS, max_size=None, max_queue=1, close_timeout=0.5
+    ) as ws:
+        try:
+            advertised: dict[str, int] = {}
+            while not topics <= set(advertised):
+                msg = ws.recv(timeout=WS_TIMEOUT_S)
+                if isinstance(msg, str) and json.loads(msg).get("op") == "advertise":
+                    advertised.update((ch["topic"], ch["id"]) for ch in json.loads(msg)["channels"])
+            subs = [{"id": i + 1, "channelId": advertised[t]} for i, t in enumerate(sorted(topics))]
+            ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
+            yield ws
+        finally:
+            sock.shutdown(socket.SHUT_RDWR)
+
+
+def _published_frames(lv: LiveView, n: int) -> None:
+    """Hand ``n`` frames to ``lv`` (once a client subscribes to them), each after the previous one was published."""
+    from onboard.core.irframe import IrFrame
+
+    px = (np.arange(512 * 640) % 251).astype(np.uint8).reshape(512, 640)
+    deadline = time.monotonic() + WS_TIMEOUT_S
+    sent = 0
+    while sent < n:
+        assert time.monotonic() < deadline, f"{sent} of {n} frames published within {WS_TIMEOUT_S} s"
+        before = lv.stats()["published"]
+        if lv.on_frame(IrFrame(sent, 1_000_000 + sent * 33_333, px)):
+            sent += 1
+            while lv.stats()["published"] == before and time.monotonic() < deadline:
+                time.sleep(0.001)
+        else:
+            time.sleep(0.01)  # not subscribed yet
+
+
+@pytest.mark.integration
+def test_close_keeps_its_budget_with_a_client_that_stopped_reading(caplog):
+    """The SDK's stop waits for every client's connection to close; one subscribed to the frames that stopped reading
+    held it 20 s and more, past the daemon's 1.8 s shutdown budget."""
+    import logging
+    import threading
+
+    budget_s = 1.0
+    lv = LiveView(LiveViewConfig(), port=0, vehicle="uav1")
+    lv.start()
+    with _subscribed_client(lv.port, {lv.frame_topic}):
+        _published_frames(lv, 100)  # 33 MB: more than the socket buffers and the SDK's backlog hold
+        closed = threading.Event()
+        with caplog.at_level(logging.WARNING, logger="onboard.io.live_view"):
+            t0 = time.monotonic()
+            threading.Thread(target=lambda: (lv.close(budget_s), closed.set()), daemon=True).start()
+            assert closed.wait(budget_s + 1.0), "close() did not return within its budget"
+            took_s = time.monotonic() - t0
+    assert took_s < budget_s + 0.5
+    stuck = [r for r in caplog.records if "did not stop" in r.getMessage()]
+    assert len(stuck) == 1 and stuck[0].levelno == logging.WARNING
+
+
+def test_the_live_view_tap_closes_within_the_time_it_is_given():
+    from onboard.app.observers import LiveViewTap
+
+    given = []
+
+    class _LiveView:
+        def close(self, timeout_s: float = 2.0) -> None:
+            given.append(timeout_s)
+
+    LiveViewTap(_LiveView()).close(0.3)
+    assert given == [0.3]
