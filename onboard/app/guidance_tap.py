@@ -26,7 +26,7 @@ from onboard.app.config import OnboardConfig
 from onboard.core.irframe import IrFrame
 from onboard.estimation.guidance import Advice, GuidanceAdvisor, GuidancePlanner, SetpointGate, advice_to_json
 
-__all__ = ["GuidanceTap", "make_guidance_tap"]
+__all__ = ["GuidanceTap", "fixed_pod_heading_warning", "make_guidance_tap"]
 
 log = logging.getLogger(__name__)
 
@@ -51,6 +51,30 @@ def reference_alt_m(pose: Any, altitude_reference: str, home_alt_amsl_m: float |
     return _origin_alt_m(pose) - float(home_alt_amsl_m)
 
 
+def fixed_pod_heading_warning(config: OnboardConfig) -> str | None:
+    """What to warn of when guidance is in the loop (``guidance.enabled``) with a fixed pod and no bound on the
+    target's bearing off the commanded velocity's heading that keeps it in the camera's horizontal field of view
+    (``guidance.max_los_off_heading_deg`` above half of it); None otherwise.
+
+    The setpoints command no yaw, and an autopilot may turn the nose along the velocity (ArduCopter:
+    WP_YAW_BEHAVIOR), so a manoeuvre across the line of sight can point a fixed pod away from its target.  A warning, not a refusal: whether the nose follows the velocity is the autopilot's setting, which
+    the daemon cannot see, and the bound rules out the crossing manoeuvres that range best."""
+    g, cam = config.guidance, config.camera
+    if not g.enabled or cam.mount.gimballed:
+        return None
+    k = cam.pinhole()
+    half_fov_deg = math.degrees(math.atan(min(k.cx_px, k.width_px - k.cx_px) / k.fx_px))
+    if g.max_los_off_heading_deg <= half_fov_deg:
+        return None
+    return (
+        f"guidance in the loop (guidance.enabled) with a fixed pod (camera.mount.gimballed false) and "
+        f"guidance.max_los_off_heading_deg {g.max_los_off_heading_deg:g} over the camera's half horizontal field of "
+        f"view ({half_fov_deg:.1f} deg): an autopilot that turns its nose along the commanded velocity "
+        f"(ArduCopter: WP_YAW_BEHAVIOR) can point the pod away from the target; set "
+        f"guidance.max_los_off_heading_deg <= {half_fov_deg:.1f}, or have the autopilot hold its heading"
+    )
+
+
 class GuidanceTap:
     """Advice from the newest (track, pose), published through ``publish(bytes)`` once :meth:`attach` gave it."""
 
@@ -59,6 +83,7 @@ class GuidanceTap:
     def __init__(self, config: OnboardConfig, advisor: GuidanceAdvisor, clock: Any = time.monotonic) -> None:
         self.vehicle = config.vehicle
         self.in_loop = config.guidance.enabled
+        self._heading_warning = fixed_pod_heading_warning(config)  # logged once, at start
         self.altitude_reference = config.guidance.altitude_reference
         self.home_alt_amsl_m: float | None = None  # from the autopilot link (setpoint_step), for a band above home
         self.advisor = advisor
@@ -90,6 +115,8 @@ class GuidanceTap:
         self._publish = publish
 
     def start(self) -> None:
+        if self._heading_warning:
+            log.warning("%s", self._heading_warning)
         self._thread = threading.Thread(target=self._loop, name="irtrack-guidance", daemon=True)
         self._thread.start()
 

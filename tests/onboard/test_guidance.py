@@ -355,6 +355,32 @@ def test_setpoints_are_paced_on_a_schedule_so_a_late_turn_does_not_stretch_the_n
     assert tap.next_setpoint_s == math.inf  # advice only: nothing for the main loop to wake for
 
 
+def test_guidance_in_the_loop_with_a_fixed_pod_and_no_heading_limit_is_warned_at_start(caplog):
+    """config/onboard.yaml ships a fixed pod and max_los_off_heading_deg 180 (no limit): an autopilot that yaws along
+    the commanded velocity can turn the pod away from the target in a cross-track manoeuvre.  Warned once at start,
+    naming the keys, unless the limit keeps the target within half the horizontal field of view (22.7 deg here)."""
+    import logging
+
+    from onboard.app.config import OnboardConfig
+    from onboard.app.guidance_tap import fixed_pod_heading_warning, make_guidance_tap
+    from onboard.core.schema import build as build_cfg
+
+    def cfg(guidance, gimballed=False):
+        return build_cfg(OnboardConfig, {"guidance": guidance, "camera": {"mount": {"gimballed": gimballed}}})
+
+    why = fixed_pod_heading_warning(cfg({"enabled": True}))
+    assert why is not None and "guidance.max_los_off_heading_deg 180" in why and "camera.mount.gimballed" in why
+    assert "<= 22.7" in why
+    assert fixed_pod_heading_warning(cfg({"enabled": True, "max_los_off_heading_deg": 22.0})) is None
+    assert fixed_pod_heading_warning(cfg({"enabled": True}, gimballed=True)) is None  # the pod looks where it likes
+    assert fixed_pod_heading_warning(cfg({"enabled": False})) is None  # advice only: nothing is commanded
+    tap = make_guidance_tap(cfg({"enabled": True}))
+    with caplog.at_level(logging.WARNING, logger="onboard.app.guidance_tap"):
+        tap.start()
+    tap.close(1.0)
+    assert [r.getMessage() for r in caplog.records if "max_los_off_heading_deg" in r.getMessage()] == [why]
+
+
 def test_the_altitude_band_is_above_home_by_default_so_it_holds_at_any_site_elevation():
     """A site 488 m above sea level: a vehicle 60 m above home is inside the default 20-150 m band (it would be
     far above it AMSL); until the autopilot has said where home is, there is no reference and no advice."""
