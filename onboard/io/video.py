@@ -11,7 +11,9 @@ ground station can join at any second; grey levels as limited-range luma, said s
 :class:`H264RtpEncoder` (access units packetised as RTP, RFC 6184, by
 :class:`onboard.io.rtp_h264.RtpH264Packetizer`: 90 kHz timestamps from each frame's capture time, the
 marker bit on an access unit's last packet) and :class:`H264TsEncoder` (MPEG-TS muxing into any
-``write``-able, its 90 kHz time stamps from the capture times too).
+``write``-able, its 90 kHz time stamps from the capture times too).  Both streams' stamps always move forward:
+where the capture clock steps back (a camera or autopilot restart) or far forward, they go on one frame period
+after the last (:class:`_StreamClock`; counted in the status's ``video.clock_resets``).
 
 Adapter: :class:`VideoStreamer` owns a thread and a UDP socket: :meth:`VideoStreamer.submit` (called by
 the pipeline thread, never blocks) keeps at most ``queue_length`` frames and drops the oldest when the
@@ -52,7 +54,7 @@ import numpy as np
 from onboard.core.errors import InputError
 from onboard.core.schema import Bool, Integer, Invalid, Number, Text, config_dataclass
 from onboard.io.foxglove_messages import drawn_box
-from onboard.io.rtp_h264 import DEFAULT_MAX_PACKET_BYTES, DEFAULT_PAYLOAD_TYPE, RtpH264Packetizer, rtp_timestamp
+from onboard.io.rtp_h264 import DEFAULT_MAX_PACKET_BYTES, DEFAULT_PAYLOAD_TYPE, RtpH264Packetizer
 from onboard.io.worker_queue import items_until_stopped, stop_and_join
 
 __all__ = [
@@ -87,6 +89,10 @@ AGC_MIN_SPAN = 8.0  # grey levels: a flat frame is not stretched into noise
 AGC_SAMPLE_STEP = 4  # percentiles over every 4th pixel in each direction (1/16 of the frame)
 Transport = Literal["rtp", "mpegts"]  # RTP/UDP (RFC 6184) or MPEG-TS/UDP (module docstring)
 TRANSPORTS: tuple[str, ...] = get_args(Transport)
+#: a capture time more than this many GOPs after the previous frame's is a step of the capture clock, not a gap
+CLOCK_JUMP_GOPS = 5
+#: a step of the capture clock is logged at most this often (each one counted: ``clock_resets``)
+CLOCK_STEP_LOG_INTERVAL_S = 10.0
 SEND_BUFFER_BYTES = 1 << 20  # an IDR (~40-110 kB at 640 x 512) leaves in one burst of datagrams
 RESOLVE_INTERVAL_S = 1.0  # a destination name not resolved yet is looked up at most this often (the encoder waits)
 
@@ -259,6 +265,50 @@ class _GreyFrames:
         self._key_us = capture_time_us
 
 
+class _StreamClock:
+    """Capture times (us, the camera's clock) -> the stream's 90 kHz clock (MPEG-TS PTS, RTP timestamp), which must
+    always move forward: ``(capture - origin) * 90 kHz`` plus a base that only changes when the capture clock steps.
+
+    A capture time before the previous frame's (the camera or the autopilot rebooted, a time sync stepped the clock)
+    or more than ``max_gap_us`` after it re-bases the clock: that frame is stamped one frame period after the previous
+    one and the following frames are spaced by their capture times from it.  Without it, the stamps of every frame
+    after a step back were pinned one tick apart until the capture clock passed its old maximum again, and an RTP
+    receiver saw the timestamps of one SSRC jump back.  ``origin_us``: the capture time of stamp 0 (None: the first
+    frame's).  ``resets``: the steps seen."""
+
+    def __init__(self, fps: float, max_gap_us: int, origin_us: int | None = None) -> None:
+        self.period_ticks = max(1, round(TS_CLOCK_HZ / float(fps)))
+        self._max_gap_us = int(max_gap_us)
+        self._origin_us = origin_us
+        self._base_ticks = 0
+        self._last_us: int | None = None
+        self._last_ticks = -1
+        self.resets = 0
+        self._logged_s = -math.inf
+
+    def ticks(self, capture_time_us: int) -> int:
+        c = int(capture_time_us)
+        last_us = self._last_us
+        if last_us is not None and not 0 <= c - last_us <= self._max_gap_us:
+            self._origin_us, self._base_ticks = c, self._last_ticks + self.period_ticks
+            self.resets += 1
+            now_s = time.monotonic()
+            if now_s - self._logged_s >= CLOCK_STEP_LOG_INTERVAL_S:
+                self._logged_s = now_s
+                log.info(
+                    "video: the capture clock stepped %+.3f s between frames (a camera or autopilot restart?); the "
+                    "stream's timestamps go on one frame period after the last (counted in video.clock_resets)",
+                    (c - last_us) / 1e6,
+                )
+        elif self._origin_us is None:
+            self._origin_us = c
+        assert self._origin_us is not None
+        # two frames with the same capture time: the second just after the first, since stamps must grow
+        t = max(self._base_ticks + (c - self._origin_us) * TS_CLOCK_HZ // 1_000_000, self._last_ticks + 1)
+        self._last_us, self._last_ticks = c, t
+        return t
+
+
 class H264TsEncoder:
     """Grey frames -> H.264 in MPEG-TS written to ``sink`` (anything with ``write(bytes)``).
 
@@ -293,8 +343,7 @@ class H264TsEncoder:
         s.codec_context.time_base = Fraction(1, TS_CLOCK_HZ)
         s.time_base = Fraction(1, TS_CLOCK_HZ)
         self._stream = s
-        self._t0_us: int | None = None
-        self._last_pts = -1
+        self.clock = _StreamClock(fps, CLOCK_JUMP_GOPS * int(round(gop_s * 1e6)))
         self.closed = False
 
     def encode(self, img_u8: np.ndarray, capture_time_us: int | None = None) -> int:
@@ -302,12 +351,8 @@ class H264TsEncoder:
         stamped with it; returns the number of packets written."""
         if capture_time_us is None:
             capture_time_us = time.monotonic_ns() // 1000
-        if self._t0_us is None:
-            self._t0_us = capture_time_us
         frame = self._frames.next(img_u8, capture_time_us)
-        # a stamp that does not move forward (a clock step back) is placed just after the last: PTS must grow
-        pts = max((capture_time_us - self._t0_us) * TS_CLOCK_HZ // 1_000_000, self._last_pts + 1)
-        frame.pts = self._last_pts = pts
+        frame.pts = self.clock.ticks(capture_time_us)
         frame.time_base = self._stream.codec_context.time_base
         packets = self._stream.encode(frame)
         if any(p.is_keyframe for p in packets):
@@ -358,6 +403,8 @@ class H264RtpEncoder:
             rng.getrandbits(32), payload_type, max_packet_bytes, first_sequence=rng.getrandbits(16)
         )
         self._ts_offset = rng.getrandbits(32)
+        # origin 0: the timestamps are rtp_timestamp(capture time, offset) until the capture clock steps
+        self.clock = _StreamClock(fps, CLOCK_JUMP_GOPS * int(round(gop_s * 1e6)), origin_us=0)
         self._send = send
         ctx = av.CodecContext.create("libx264", "w")
         ctx.width, ctx.height, ctx.pix_fmt = self.width_px, self.height_px, "yuv420p"
@@ -381,7 +428,7 @@ class H264RtpEncoder:
         packets = self._ctx.encode(self._frames.next(img_u8, capture_time_us))
         if any(p.is_keyframe for p in packets):
             self._frames.keyframe(capture_time_us)
-        return self._send_units(packets, rtp_timestamp(capture_time_us, self._ts_offset))
+        return self._send_units(packets, (self.clock.ticks(capture_time_us) + self._ts_offset) % (1 << 32))
 
     def _send_units(self, packets, timestamp: int) -> int:
         n = 0
@@ -633,6 +680,7 @@ class VideoStreamer:
             "datagrams": self._sink.datagrams,
             "send_errors": self._sink.errors,
             "refused": self._sink.refused,
+            "clock_resets": self._encoder.clock.resets,
             "encode_ms_p50": float(np.percentile(ms, 50)) if ms.size else None,
             "encode_ms_p99": float(np.percentile(ms, 99)) if ms.size else None,
             "camera_rate_hz": None if rate is None else round(rate, 2),

@@ -155,6 +155,50 @@ def test_an_idr_comes_each_second_of_capture_time_whatever_the_cameras_rate_and_
 
 
 @pytest.mark.parametrize("transport", ["rtp", "mpegts"])
+def test_the_streams_stamps_go_on_one_frame_period_after_the_capture_clock_steps_back_or_far_forward(transport, caplog):
+    """The capture clock (the frames' time_boot_us) steps back 39.8 s (an autopilot reboot), then 60 s forward: the
+    stream's 90 kHz stamps (MPEG-TS PTS as PyAV's demuxer reads them; RTP timestamps of one SSRC) advance by one
+    frame period at each step, as between any two frames.  Before, the PTS after the step back went up one tick a
+    frame (until the capture clock passed its old maximum) and the RTP timestamps jumped back 39.8 s."""
+    import logging
+    import random
+
+    before = [40_000_000 + k * FRAME_US for k in range(40)]
+    after_reboot = [before[-1] - 39_800_000 + k * FRAME_US for k in range(40)]
+    later = [after_reboot[-1] + 60_000_000 + k * FRAME_US for k in range(20)]
+    t_us = before + after_reboot + later
+    grey = agc_u8(_mono16(0)[0], *AgcState().update(_mono16(0)[0]))
+    with caplog.at_level(logging.INFO, logger="onboard.io.video"):
+        if transport == "rtp":
+            datagrams: list[bytes] = []
+            enc: H264RtpEncoder | H264TsEncoder
+            enc = H264RtpEncoder(datagrams.append, W, H, fps=30.0, gop_frames=30, rng=random.Random(5))
+            stamps = []
+            for t in t_us:
+                n0 = len(datagrams)
+                enc.encode(grey, capture_time_us=t)
+                packets = [parse_rtp(d) for d in datagrams[n0:]]
+                assert {p.ssrc for p in packets} == {enc.packetizer.ssrc}
+                stamps.append(packets[0].timestamp)
+            steps = [(b - a) % 2**32 for a, b in zip(stamps, stamps[1:])]
+        else:
+            buf = io.BytesIO()
+            enc = H264TsEncoder(buf, W, H, fps=30.0, gop_frames=30)
+            for t in t_us:
+                enc.encode(grey, capture_time_us=t)
+            enc.close()
+            c = av.open(io.BytesIO(buf.getvalue()), format="mpegts")
+            stamps = [pkt.pts for pkt in c.demux(video=0) if pkt.size]
+            c.close()
+            assert len(stamps) == len(t_us)
+            steps = [b - a for a, b in zip(stamps, stamps[1:])]
+    assert all(abs(d - RTP_TICKS_PER_FRAME) <= 1 for d in steps), sorted(set(steps))
+    assert enc.clock.resets == 2
+    said = [r.getMessage() for r in caplog.records if "capture clock stepped" in r.getMessage()]
+    assert len(said) == 1 and "-39.800" in said[0]  # the second step within the log interval: counted only
+
+
+@pytest.mark.parametrize("transport", ["rtp", "mpegts"])
 def test_decoded_grey_levels_are_the_pictures_and_the_stream_says_limited_range(transport):
     """A ramp over every grey level, through the encoder and PyAV's decoder (as a ground station converts it):
     the levels come back within 2 (a full-range picture in a stream read as limited range clipped ~11 % of a
@@ -524,6 +568,7 @@ def test_the_streamer_to_nobody_encodes_every_frame_and_counts_the_refusals():
         streamer.close()
     assert st["encoded"] == 5 and st["errors"] == 0 and st["send_errors"] == 0
     assert st["refused"] >= 1 and st["datagrams"] > 0
+    assert st["clock_resets"] == 0
 
 
 def test_camera_advertises_the_stream_on_the_destination_port():
