@@ -45,6 +45,7 @@ import random
 import socket
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from fractions import Fraction
 from typing import Annotated, Literal, get_args
@@ -95,6 +96,10 @@ CLOCK_JUMP_GOPS = 5
 CLOCK_STEP_LOG_INTERVAL_S = 10.0
 SEND_BUFFER_BYTES = 1 << 20  # an IDR (~40-110 kB at 640 x 512) leaves in one burst of datagrams
 RESOLVE_INTERVAL_S = 1.0  # a destination name not resolved yet is looked up at most this often (the encoder waits)
+#: datagrams sent this long without a refusal: someone listens at the destination again.  Linux sends an ICMP port
+#: unreachable about once a second per destination (icmp_ratelimit), so a shorter quiet time would say "again"
+#: between two refusals of a destination still closed
+REFUSED_QUIET_S = 5.0
 
 
 def agc_limits(
@@ -455,12 +460,20 @@ class _UdpSink:
     reachable when the daemon starts is connected again at the next send).  Nobody listening: the ICMP port
     unreachable of an earlier datagram comes back as ECONNREFUSED on a later send, which Linux then does not
     send; counted in ``refused`` and that datagram sent once more, so that a ground station that has just
-    opened its port gets whole pictures."""
+    opened its port gets whole pictures.
+
+    Said once per outage, not per datagram: one WARNING at the first refusal and one INFO once datagrams have gone
+    :data:`REFUSED_QUIET_S` (on ``clock``) without one; one WARNING per kind of send error (errno) and one INFO at
+    the next datagram that leaves."""
 
     send_buffer_bytes: int | None = None  # SO_SNDBUF of the socket, None: the system's
 
-    def __init__(self, host: str, port: int) -> None:
+    def __init__(self, host: str, port: int, clock: Callable[[], float] = time.monotonic) -> None:
         self.host, self.port = host, port
+        self._clock = clock
+        self._refused_s: float | None = None  # the latest refusal while nobody is said to listen (None: listened)
+        self._refused_at_warning = 0
+        self._failing: dict[int | None, int] = {}  # errno of each send error said -> datagrams lost to it
         self.addr: tuple | None = None  # resolved at the first connect that can: DNS may come up after the daemon
         self.sock: socket.socket | None = None
         self.datagrams = 0
@@ -506,13 +519,48 @@ class _UdpSink:
                 sock.send(datagram)
             except ConnectionRefusedError:
                 self.refused += 1
+                self._on_refused()
                 continue
-            except OSError:
+            except OSError as exc:
                 self.errors += 1
+                self._on_error(exc)
                 return
             self.datagrams += 1
+            if self._refused_s is not None or self._failing:
+                self._on_sent()
             return
         self.errors += 1  # refused twice: a new ICMP error came back in between
+
+    def _on_refused(self) -> None:
+        if self._refused_s is None:
+            self._refused_at_warning = self.refused - 1
+            log.warning("video: nobody listening at %s:%s; counted in video.refused", self.host, self.port)
+        self._refused_s = self._clock()
+
+    def _on_error(self, exc: OSError) -> None:
+        n = self._failing.get(exc.errno)
+        self._failing[exc.errno] = 1 if n is None else n + 1
+        if n is None:
+            log.warning(
+                "video: cannot send to %s:%s (%s); counted in video.send_errors",
+                self.host,
+                self.port,
+                exc.strerror or exc,
+            )
+
+    def _on_sent(self) -> None:
+        if self._failing:
+            lost = sum(self._failing.values())
+            self._failing.clear()
+            log.info("video: datagrams leave for %s:%s again (%d not sent meanwhile)", self.host, self.port, lost)
+        if self._refused_s is not None and self._clock() - self._refused_s >= REFUSED_QUIET_S:
+            self._refused_s = None
+            log.info(
+                "video: datagrams get through to %s:%s again (%d refused meanwhile)",
+                self.host,
+                self.port,
+                self.refused - self._refused_at_warning,
+            )
 
     def close(self) -> None:
         if self.sock is not None:
@@ -531,8 +579,8 @@ class _UdpRtpSink(_UdpSink):
 class _UdpTsSink(_UdpSink):
     """MPEG-TS bytes -> UDP datagrams of 1316 bytes (whole TS packets)."""
 
-    def __init__(self, host: str, port: int) -> None:
-        super().__init__(host, port)
+    def __init__(self, host: str, port: int, clock: Callable[[], float] = time.monotonic) -> None:
+        super().__init__(host, port, clock)
         self._buf = bytearray()
 
     def write(self, data) -> int:

@@ -10,6 +10,7 @@ from __future__ import annotations
 import errno
 import io
 import math
+import os
 import socket
 import threading
 import time
@@ -483,6 +484,77 @@ def test_nobody_listening_is_counted_not_raised_and_a_receiver_that_opens_gets_e
             assert _recv_all(rx, 3) == [b"unit 0", b"unit 1", b"unit 2"]  # none lost to an earlier refusal
     finally:
         sink.close()
+
+
+def test_nobody_listening_is_said_once_and_that_datagrams_get_through_again_once(caplog):
+    """Refusals were counted and never logged (tens of thousands over minutes, nothing in the log): one WARNING at
+    the first, one INFO once datagrams went REFUSED_QUIET_S without one."""
+    import logging
+
+    from onboard.io.video import REFUSED_QUIET_S
+
+    now_s = [100.0]
+    port = _closed_port()
+    sink = _UdpRtpSink("127.0.0.1", port, clock=lambda: now_s[0])
+    try:
+        with caplog.at_level(logging.INFO, logger="onboard.io.video"):
+            sent = 0
+            while sink.refused < 3 and sent < 3000:
+                sink.send(b"nobody")
+                sent += 1
+            assert sink.refused >= 3
+            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as rx:
+                rx.bind(("127.0.0.1", port))  # the ground station opens its port
+                sink.send(b"first")
+                now_s[0] += REFUSED_QUIET_S / 2
+                sink.send(b"not yet")
+                now_s[0] += REFUSED_QUIET_S / 2
+                sink.send(b"quiet long enough")
+                sink.send(b"and on")
+                assert _recv_all(rx, 4) == [b"first", b"not yet", b"quiet long enough", b"and on"]
+    finally:
+        sink.close()
+    said = [(r.levelno, r.getMessage()) for r in caplog.records if r.name == "onboard.io.video"]
+    assert said == [
+        (logging.WARNING, f"video: nobody listening at 127.0.0.1:{port}; counted in video.refused"),
+        (logging.INFO, f"video: datagrams get through to 127.0.0.1:{port} again ({sink.refused} refused meanwhile)"),
+    ]
+
+
+def test_a_send_error_is_said_once_per_errno_until_a_datagram_leaves(caplog):
+    import logging
+
+    class Failing:
+        errnos: list[int | None] = []
+
+        def send(self, data: bytes) -> int:
+            if self.errnos:
+                e = self.errnos.pop(0)
+                if e is not None:
+                    raise OSError(e, os.strerror(e))
+            return len(data)
+
+        def close(self) -> None:
+            pass
+
+    sink = _UdpTsSink("127.0.0.1", _closed_port())
+    sink.sock.close()
+    sink.sock = Failing()  # type: ignore[assignment]
+    sink.connected = True
+    Failing.errnos = [errno.ENOBUFS] * 5 + [errno.EHOSTUNREACH] * 3 + [None] + [errno.ENOBUFS] * 2 + [None]
+    with caplog.at_level(logging.INFO, logger="onboard.io.video"):
+        for _ in range(13):
+            sink.send(b"\x47" * 188)
+    assert sink.errors == 10 and sink.datagrams == 3
+    said = [(r.levelno, r.getMessage().split(" (")[0]) for r in caplog.records if r.name == "onboard.io.video"]
+    assert said == [
+        (logging.WARNING, "video: cannot send to 127.0.0.1:" + str(sink.port)),
+        (logging.WARNING, "video: cannot send to 127.0.0.1:" + str(sink.port)),
+        (logging.INFO, f"video: datagrams leave for 127.0.0.1:{sink.port} again"),
+        (logging.WARNING, "video: cannot send to 127.0.0.1:" + str(sink.port)),
+        (logging.INFO, f"video: datagrams leave for 127.0.0.1:{sink.port} again"),
+    ]
+    assert "(8 not sent meanwhile)" in caplog.records[2].getMessage()
 
 
 def test_a_destination_unreachable_at_start_fails_nothing_and_is_connected_at_a_later_send(monkeypatch):
