@@ -31,7 +31,8 @@ thread encodes and hands the messages to the SDK (whose own per-client backlog, 
 drops the oldest data for a slow client; the SDK's default, 1024 messages, is 1024 frames of 320 kB or more for each
 client that stops reading).  Past ``queue_length`` queued items, or with more than one frame queued, a new item is
 dropped and counted (:meth:`LiveView.stats`: ``dropped``, per kind).  Frames are only queued while a
-client subscribes to them.
+client subscribes to them, and each message is only built for a channel a client subscribes to (the trails are
+kept all the same).
 
 The geometry (frustum, line of sight, ellipsoid) is pure numpy, in the functions below.
 """
@@ -364,12 +365,19 @@ class LiveView:
         sec, nsec = f.pop("timestamp")
         self._ch["frame"].log(RawImage(timestamp=_ts(sec, nsec), **f))
 
+    # Each message below is built only for a channel a client subscribes to (has_sinks): the scene alone, with its
+    # trails of a few hundred points, costs the publisher thread a millisecond or more a frame, holding the GIL the
+    # pipeline needs, for nobody.  The trails are kept all the same, so that a client that joins sees them whole.
+
     def _pub_status(self, payload: bytes) -> None:
-        self._ch["status"].log(payload)
+        if self._ch["status"].has_sinks():
+            self._ch["status"].log(payload)
 
     def _pub_objects(self, message: dict[str, Any]) -> None:
-        self._ch["objects"].log(json.dumps(message, separators=(",", ":")).encode())  # the bytes zenoh carries
-        self._ch["object_annotations"].log(objects_annotations(message).SerializeToString())
+        if self._ch["objects"].has_sinks():
+            self._ch["objects"].log(json.dumps(message, separators=(",", ":")).encode())  # the bytes zenoh carries
+        if self._ch["object_annotations"].has_sinks():
+            self._ch["object_annotations"].log(objects_annotations(message).SerializeToString())
 
     def _pub_pose(self, t_us: int, pose) -> None:
         self._pose = pose
@@ -378,17 +386,39 @@ class LiveView:
         p = np.asarray(pose.p_cam_ned_m, dtype=float)
         if np.all(np.isfinite(p)):
             self._camera_trail.append(p)
-            self._ch["camera_fix"].log(_location_fix(camera_fix_fields(pose, t_us)))
+            if self._ch["camera_fix"].has_sinks():
+                self._ch["camera_fix"].log(_location_fix(camera_fix_fields(pose, t_us)))
 
     def _pub_track(self, track, payload: bytes | None) -> None:
-        self._ch["track"].log(payload if payload is not None else track_to_bytes(track))
-        if track.lat_deg is not None:
+        if self._ch["track"].has_sinks():
+            self._ch["track"].log(payload if payload is not None else track_to_bytes(track))
+        if track.lat_deg is not None and self._ch["target_fix"].has_sinks():
             f = location_fix_fields(
                 track.lat_deg, track.lon_deg, track.alt_m, track.time_boot_us, "target", track.cov_p_ned_m2
             )
             self._ch["target_fix"].log(_location_fix(f))
-        self._pub_annotations(track)
-        self._pub_scene(track)
+        if track.p_ned_m is not None:
+            self._target_trail.append(np.asarray(track.p_ned_m, dtype=float))
+        if self._ch["annotations"].has_sinks():
+            self._pub_annotations(track)
+        if self._ch["scene"].has_sinks():
+            self._pub_scene(track)
+        if self._ch["tf"].has_sinks():
+            self._pub_tf(track)
+
+    def _pub_tf(self, track) -> None:
+        from foxglove.messages import FrameTransform, Quaternion, Vector3
+
+        w, x, y, z = (float(c) for c in Q_ENU_FROM_NED)
+        self._ch["tf"].log(
+            FrameTransform(
+                timestamp=_ts_us(track.time_boot_us),
+                parent_frame_id="enu",
+                child_frame_id=NED_FRAME_ID,
+                translation=Vector3(),
+                rotation=Quaternion(w=w, x=x, y=y, z=z),
+            )
+        )
 
     def _pub_annotations(self, track) -> None:
         from foxglove.messages import (
@@ -428,7 +458,6 @@ class LiveView:
     def _pub_scene(self, track) -> None:
         from foxglove.messages import (
             Color,
-            FrameTransform,
             LinePrimitive,
             LinePrimitiveLineType,
             Point3,
@@ -493,7 +522,6 @@ class LiveView:
         spheres = []
         if track.p_ned_m is not None:
             p = np.asarray(track.p_ned_m, dtype=float)
-            self._target_trail.append(p)
             size, q = (np.full(3, 2.0), np.array([1.0, 0.0, 0.0, 0.0]))
             if track.cov_p_ned_m2 is not None:
                 size, q = ellipsoid_of_cov(track.cov_p_ned_m2)
@@ -526,15 +554,6 @@ class LiveView:
             )
             ents.append(entity(eid, lines=lines))
         self._ch["scene"].log(SceneUpdate(entities=ents))
-        self._ch["tf"].log(
-            FrameTransform(
-                timestamp=ts,
-                parent_frame_id="enu",
-                child_frame_id=NED_FRAME_ID,
-                translation=Vector3(),
-                rotation=quat(Q_ENU_FROM_NED),
-            )
-        )
 
 
 def _ts(sec: int, nsec: int):

@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from onboard.core.errors import InputError
-from onboard.core.frames import rotmat_from_quat
+from onboard.core.frames import GeodeticOrigin, rotmat_from_quat
 from onboard.io.live_view import (
     Q_ENU_FROM_NED,
     SCENE_TOPIC,
@@ -419,3 +419,54 @@ def test_the_live_view_tap_closes_within_the_time_it_is_given():
 
     LiveViewTap(_LiveView()).close(0.3)
     assert given == [0.3]
+
+
+class _Channel:
+    """A live-view channel: subscribed to or not (``sinks``), keeping what is logged on it."""
+
+    def __init__(self) -> None:
+        self.sinks = False
+        self.logged: list = []
+
+    def has_sinks(self) -> bool:
+        return self.sinks
+
+    def log(self, message) -> None:
+        self.logged.append(message)
+
+
+class _Pose:
+    p_cam_ned_m = np.array([0.0, 0.0, -100.0])
+    q_ned_from_cam = np.array([1.0, 0.0, 0.0, 0.0])
+    origin = GeodeticOrigin(47.4, 8.5, 500.0)
+
+
+def test_nothing_is_built_for_a_channel_nobody_subscribes_to_and_the_trails_are_kept_for_one_who_does():
+    """The scene, annotations and fixes were built every frame with no client (~1-2 ms a frame with 600-point trails,
+    the GIL held); the trails go on all the same, so that a client that subscribes sees them whole."""
+    from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+
+    lv = LiveView(LiveViewConfig(), port=0, vehicle="uav1")  # not started: the channels are these
+    lv._ch = {k: _Channel() for k in ("objects", "object_annotations", "track", "status", "target_fix")} | {
+        k: _Channel() for k in ("camera_fix", "annotations", "scene", "tf")
+    }
+    objects = {"time_boot_us": 1_000_000, "objects": [{"id": 1, "box_px": [10.0, 10.0, 4.0, 4.0], "primary": True}]}
+    n = 20
+    for k in range(n):
+        lv._pub_pose(1_000_000 + k * 33_333, _Pose())
+        lv._pub_track(_track(k), None)
+        lv._pub_objects(objects)
+        lv._pub_status(b"{}")
+    assert {k: len(ch.logged) for k, ch in lv._ch.items() if ch.logged} == {}
+    assert len(lv._target_trail) == len(lv._camera_trail) == n
+    for ch in lv._ch.values():
+        ch.sinks = True
+    lv._pub_pose(1_000_000 + n * 33_333, _Pose())
+    lv._pub_track(_track(n), None)
+    lv._pub_objects(objects)
+    lv._pub_status(b"{}")
+    assert {k: len(ch.logged) for k, ch in lv._ch.items()} == {k: 1 for k in lv._ch}
+    scene = SceneUpdate()
+    scene.ParseFromString(lv._ch["scene"].logged[0].encode())
+    trails = {e.id: len(e.lines[0].points) for e in scene.entities if e.id.endswith("_trail")}
+    assert trails == {"target_trail": n + 1, "camera_trail": n + 1}
