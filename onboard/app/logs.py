@@ -56,6 +56,5 @@ def setup_logging(level: str, fmt: str) -> None:
     root = logging.getLogger()
     root.handlers[:] = [handler]
     root.setLevel(level)
-    # the Foxglove SDK logs one ERROR per malformed message a live-view client sends (Rust log records passed to
-    # Python): any local client could write megabytes a second into the daemon's log (a failure to serve is raised)
-    logging.getLogger("foxglove.websocket").setLevel(logging.CRITICAL)
+    # the Foxglove SDK's records about live-view clients (one ERROR per malformed message) are counted, and only the
+    # first of each kind logged, by the live view itself (onboard.io.live_view.ClientLog)

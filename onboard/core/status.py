@@ -137,7 +137,15 @@ STATUS_SECTION_KEYS: tuple[tuple[str, dict[str, Any], bool], ...] = (
     ("camera", {"type": "object", "description": "the MAVLink camera component (gcs)"}, False),
     ("video", {"type": "object", "description": "the H.264 video stream"}, False),
     ("record", {"type": "object", "description": "the flight recorder (FlightRecorder.stats)"}, False),
-    ("live_view", {"type": "object", "description": "the Foxglove live view"}, False),
+    (
+        "live_view",
+        {
+            "type": "object",
+            "description": "the Foxglove live view (LiveView.stats): port, published, dropped (dropped_by_kind), "
+            "errors, clients (connected now), client_errors (the server's errors about what clients sent, by kind)",
+        },
+        False,
+    ),
     ("guidance", {"type": "object", "description": "the observer guidance"}, False),
 )
 

@@ -34,6 +34,15 @@ dropped and counted (:meth:`LiveView.stats`: ``dropped``, per kind).  Frames are
 client subscribes to them, and each message is only built for a channel a client subscribes to (the trails are
 kept all the same).
 
+**What clients get wrong is counted, not logged per message**: the SDK logs (Rust log records passed to Python's
+logging, loggers ``foxglove.websocket.*``) one ERROR per malformed message or subscription to an unknown channel, so
+any client could write megabytes a second into the daemon's log.  Those loggers' records go through
+:class:`ClientLog` instead: each ERROR / WARNING is counted by kind (:func:`client_error_kind`) and only the first of
+a kind reaches the log; the SDK's INFO lines on clients registering and leaving give the clients connected now.
+:meth:`LiveView.stats`: ``client_errors`` (by kind) and ``clients``.  A few refusals (a subscription repeated, a
+channel advertised by a client without the capability) the SDK logs at DEBUG only, and are not counted: at DEBUG it
+would copy every malformed message a client sends, whole, into a log record.
+
 The geometry (frustum, line of sight, ellipsoid) is pure numpy, in the functions below.
 """
 
@@ -43,6 +52,7 @@ import collections
 import json
 import logging
 import math
+import re
 import threading
 import time
 from typing import TYPE_CHECKING, Annotated, Any
@@ -72,6 +82,8 @@ if TYPE_CHECKING:
     from foxglove.websocket import WebSocketServer
 
 __all__ = [
+    "ClientLog",
+    "client_error_kind",
     "LiveViewConfig",
     "FRUSTUM_DEPTH_M",
     "LiveView",
@@ -99,6 +111,13 @@ Q_ENU_FROM_NED = quat_from_rotmat(np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0
 
 #: the camera's drawn size: the depth of its field-of-view pyramid, m
 FRUSTUM_DEPTH_M = 10.0
+
+#: the logger the SDK's WebSocket server logs under (its modules' loggers below it: .server, .connected_client, ...)
+SDK_WEBSOCKET_LOGGER = "foxglove.websocket"
+#: kinds of client error told apart; more (an SDK that words its errors with what the client sent) count as "other"
+MAX_CLIENT_ERROR_KINDS = 32
+_CLIENT_ADDRESS = re.compile(r"\[[0-9A-Fa-f:.%\w]*\]:\d+|\d{1,3}(?:\.\d{1,3}){3}:\d+")
+_CLIENT_REGISTERED = re.compile(r"^(Registered|Unregistered) client (\S+)$")
 
 
 @config_dataclass
@@ -162,6 +181,94 @@ def frustum_lines_ned(
     return np.array(out)
 
 
+# --------------------------------------------------------------------------- the SDK's log records on clients
+
+
+def client_error_kind(message: str) -> str:
+    """The kind of one of the SDK's messages about a client: its words before the first colon, the client's address
+    left out, lower case joined by ``_`` (``Invalid message from 127.0.0.1:5000: key must be a string`` ->
+    ``invalid_message_from``; ``Client 127.0.0.1:5000 attempted to subscribe to unknown channel: 9`` ->
+    ``client_attempted_to_subscribe_to_unknown_channel``); ``other`` when no word is left."""
+    head = _CLIENT_ADDRESS.sub(" ", message).split(":", 1)[0]
+    return "_".join(re.findall(r"[a-z]+", head.lower()))[:64] or "other"
+
+
+class ClientLog(logging.Filter):
+    """The SDK's log records about clients, counted (module docstring): :meth:`filter` is True for the first ERROR /
+    WARNING of each kind (its message then says where the rest are counted), False for the rest and for every
+    INFO / DEBUG record, of which "Registered client ADDR" / "Unregistered client ADDR" keep :attr:`clients`."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._lock = threading.Lock()
+        self._errors: collections.Counter = collections.Counter()
+        self._addresses: set[str] = set()
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        message = record.getMessage()
+        if record.levelno < logging.WARNING:
+            m = _CLIENT_REGISTERED.match(message)
+            if m is not None:
+                with self._lock:
+                    if m.group(1) == "Registered":
+                        self._addresses.add(m.group(2))
+                    else:
+                        self._addresses.discard(m.group(2))
+            return False
+        kind = client_error_kind(message)
+        with self._lock:
+            if kind not in self._errors and len(self._errors) >= MAX_CLIENT_ERROR_KINDS:
+                kind = "other"
+            first = self._errors[kind] == 0
+            self._errors[kind] += 1
+        if first:
+            record.msg, record.args = f"{message} (live view: the next ones counted in client_errors.{kind})", ()
+        return first
+
+    @property
+    def clients(self) -> int:
+        with self._lock:
+            return len(self._addresses)
+
+    @property
+    def errors(self) -> dict[str, int]:
+        with self._lock:
+            return dict(self._errors)
+
+
+class _SdkLogRouter(logging.Handler):
+    """The handler of the SDK's WebSocket logger, which passes its records no further itself: each goes through the
+    running live view's :class:`ClientLog` (a filter on that logger would miss its children's records), and those
+    it lets through on to the handlers above (the daemon's)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.client_log = ClientLog()  # no live view running: the first of each kind still, counted for nobody
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if self.client_log.filter(record):
+            logging.getLogger(SDK_WEBSOCKET_LOGGER.rpartition(".")[0]).handle(record)
+
+
+_sdk_log_router: _SdkLogRouter | None = None
+_sdk_log_lock = threading.Lock()
+
+
+def _route_sdk_log(client_log: ClientLog | None) -> None:
+    """Send the SDK's WebSocket records through ``client_log`` (None: a fresh one of nobody's).  The first call sets
+    the logger up, and must come before the SDK first logs: the SDK asks Python once per logger whether a level is
+    enabled and keeps the answer, and its INFO lines on clients are wanted whatever the daemon's level."""
+    global _sdk_log_router
+    with _sdk_log_lock:
+        if _sdk_log_router is None:
+            _sdk_log_router = _SdkLogRouter()
+            logger = logging.getLogger(SDK_WEBSOCKET_LOGGER)
+            logger.addHandler(_sdk_log_router)
+            logger.propagate = False
+            logger.setLevel(logging.INFO)
+        _sdk_log_router.client_log = client_log if client_log is not None else ClientLog()
+
+
 # --------------------------------------------------------------------------- the server
 
 
@@ -200,6 +307,7 @@ class LiveView:
         self.dropped = 0
         self.dropped_by_kind: collections.Counter = collections.Counter()
         self.errors = 0
+        self.client_log = ClientLog()
         self._pose = None  # the last frame's pose (publisher thread)
         self._target_trail: collections.deque = collections.deque(maxlen=settings.trail_points)
         self._camera_trail: collections.deque = collections.deque(maxlen=settings.trail_points)
@@ -217,6 +325,7 @@ class LiveView:
             SceneUpdateChannel,
         )
 
+        _route_sdk_log(self.client_log)  # before the server's first log record (_route_sdk_log)
         ctx = self._ctx = foxglove.Context()  # held: a collected context closes its channels
         s = self.settings
         try:
@@ -279,6 +388,9 @@ class LiveView:
         server, self._server = self._server, None
         if server is None:
             return
+        with _sdk_log_lock:
+            if _sdk_log_router is not None and _sdk_log_router.client_log is self.client_log:
+                _sdk_log_router.client_log = ClientLog()
         stopper = threading.Thread(target=server.stop, name="irtrack-live-view-stop", daemon=True)
         stopper.start()
         stopper.join(max(deadline_s - time.monotonic(), 0.0))
@@ -296,6 +408,8 @@ class LiveView:
                 "dropped": self.dropped,
                 "dropped_by_kind": dict(self.dropped_by_kind),
                 "errors": self.errors,
+                "clients": self.client_log.clients,
+                "client_errors": self.client_log.errors,
             }
 
     # ------------------------------------------------------------------ producers (any thread)

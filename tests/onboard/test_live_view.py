@@ -317,22 +317,64 @@ def test_a_client_that_stops_reading_is_held_to_a_small_backlog(monkeypatch):
         lv.close()
 
 
-def test_the_sdks_per_message_client_errors_stay_out_of_the_daemons_log():
-    """One ERROR line per malformed client message (foxglove.websocket.*) let any local client write ~5 MB/s of log."""
+@pytest.mark.integration
+def test_what_clients_get_wrong_is_counted_by_kind_and_logged_once_a_kind():
+    """The SDK logs one ERROR per malformed message or unknown subscription; they were all silenced (the SDK's logger
+    set to CRITICAL), against the rule that every rejected input is counted and logged once.  Now: the first of each
+    kind in the log, all counted by kind in stats()['client_errors'], the clients connected in stats()['clients']."""
     import logging
 
-    from onboard.app.logs import setup_logging
+    def wait_for(what, check) -> dict:
+        deadline = time.monotonic() + WS_TIMEOUT_S
+        while not check(st := lv.stats()):
+            assert time.monotonic() < deadline, f"{what} within {WS_TIMEOUT_S} s: {st}"
+            time.sleep(0.01)
+        return st
 
-    root = logging.getLogger()
-    saved = (root.handlers[:], root.level)
+    # the daemon's handler, on the root logger (caplog would not do: pytest also hangs its handlers on the loggers that
+    # do not propagate, the SDK's among them, so it sees every record the SDK makes, said or not)
+    kept: list[logging.LogRecord] = []
+
+    class Keep(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            kept.append(record)
+
+    handler, root = Keep(), logging.getLogger()
+    saved_level = root.level
+    root.addHandler(handler)
+    root.setLevel(logging.INFO)
+    lv = LiveView(LiveViewConfig(), port=0, vehicle="uav1")
+    lv.start()
     try:
-        setup_logging("INFO", "text")
-        assert not logging.getLogger("foxglove.websocket.connected_client").isEnabledFor(logging.ERROR)
-        assert logging.getLogger("foxglove.websocket").level == logging.CRITICAL and root.level == logging.INFO
+        with _subscribed_client(lv.port, {lv.status_topic}) as ws, _subscribed_client(lv.port, {lv.status_topic}):
+            assert wait_for("two clients", lambda st: st["clients"] == 2)["client_errors"] == {}
+            for _ in range(5):
+                ws.send("{bad")
+            for sub in (101, 102):
+                ws.send(json.dumps({"op": "subscribe", "subscriptions": [{"id": sub, "channelId": 9999}]}))
+            st = wait_for("the errors counted", lambda st: sum(st["client_errors"].values()) >= 7)
+        assert st["client_errors"] == {"invalid_message_from": 5, "client_attempted_to_subscribe_to_unknown_channel": 2}
+        wait_for("both clients gone", lambda st: st["clients"] == 0)
     finally:
-        root.handlers[:] = saved[0]
-        root.setLevel(saved[1])
-        logging.getLogger("foxglove.websocket").setLevel(logging.NOTSET)
+        lv.close()
+        root.removeHandler(handler)
+        root.setLevel(saved_level)
+    sdk = [r for r in kept if r.name.startswith("foxglove.")]
+    said = [r.getMessage() for r in sdk if "Invalid message" in r.getMessage() or "unknown channel" in r.getMessage()]
+    assert len(said) == 2 and all(r.levelno >= logging.WARNING for r in sdk)  # the SDK's INFO lines counted, not said
+    assert "the next ones counted in client_errors.invalid_message_from" in said[0]
+
+
+def test_a_client_error_kind_is_the_sdks_words_without_the_clients_address():
+    from onboard.io.live_view import client_error_kind
+
+    assert client_error_kind("Invalid message from 127.0.0.1:5000: key must be a string") == "invalid_message_from"
+    assert client_error_kind("Invalid message from [::1]:5000: unknown variant `x`") == "invalid_message_from"
+    assert (
+        client_error_kind("Client 10.0.0.2:41000 attempted to subscribe to unknown channel: 9999")
+        == "client_attempted_to_subscribe_to_unknown_channel"
+    )
+    assert client_error_kind("127.0.0.1:5000") == "other"
 
 
 # --------------------------------------------------------------------------- clients that misbehave
