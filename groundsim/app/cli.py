@@ -479,8 +479,9 @@ def _add_eval(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--guidance",
         action="store_true",
-        help="observer guidance in the loop: the observer flies its scripted motion until the first advice of the"
-        " configuration's guidance section, then follows the advice; prints the guidance summary",
+        help="observer guidance in the loop: the observer flies its scripted motion until the first setpoint, then"
+        " the setpoints the daemon's guidance tap and gate send for the configuration's guidance section (as"
+        " guidance.enabled: the advice, ended by a lost target or a newer answer); prints the guidance summary",
     )
     _onboard_config_option(
         p,

@@ -133,8 +133,9 @@ class EvalOptions:
     #: the image chain, a plug-in name (an ``irtrack.trackers`` entry point -- ``objects``, ``single`` -- or
     #: ``module:Attribute``); None = the configuration's (``imaging.chain``)
     tracker: str | None = None
-    #: observer guidance in the loop: the simulated observer flies its scripted motion until the first advice of
-    #: the configuration's ``guidance`` section, then follows the advice (``groundsim.world.guided``)
+    #: observer guidance in the loop: the simulated observer flies its scripted motion until the first setpoint, then
+    #: the setpoints the daemon's guidance tap and gate send for the configuration's ``guidance`` section
+    #: (``groundsim.evaluation.lockstep_guidance``, ``groundsim.world.guided``)
     guidance: bool = False
     #: frames sent the instant they are captured, the daemon's wait for their rotation (``imaging.pose_wait_ms``):
     #: each frame gets the telemetry up to its capture, then the samples that come within this many us until its
@@ -267,7 +268,8 @@ class RunResult:
     chain_centroid_sigma_px: float = math.nan
     estimator: str = "map"  # EvalOptions.estimator: the plug-in that made est_* and base_* (batch columns stay MAP)
     tracker: str = "objects"  # EvalOptions.tracker, or the configuration's imaging.chain when it names none
-    #: with EvalOptions.guidance: advices followed, the first one's time from the first frame (s), manoeuvres, updates
+    #: with EvalOptions.guidance: advices planned, the first one's time from the first frame (s), manoeuvres, updates,
+    #: skips, setpoints sent, the gate's stops (LockstepGuidance.summary)
     guidance: dict | None = None
     mot_gt: str = ""  # gt.txt of every object (groundsim.evaluation.mot)
     mot_tracker: str = ""  # the pipeline's objects, MOT tracker lines
@@ -362,19 +364,6 @@ def _better_frame(kept: dict | None, k: int, F: int, track) -> bool:
 GUIDED_FLIGHT_CHUNK_S = 0.1
 
 
-def _guidance_advisor(cfg):
-    """The daemon's :class:`~onboard.estimation.guidance.GuidanceAdvisor` for configuration ``cfg`` (its
-    ``guidance`` section, estimator noise model and camera), as :func:`onboard.app.guidance_tap.make_guidance_tap`
-    builds it."""
-    from onboard.estimation.guidance import GuidanceAdvisor, GuidancePlanner
-
-    k = cfg.camera.intrinsics
-    knot_s = float(cfg.estimator.sliding.get("knot_spacing_s", 1.0))
-    return GuidanceAdvisor(
-        GuidancePlanner.for_noise(cfg.guidance, cfg.estimator.noise_model(), (k.fx_px, k.fy_px), knot_s)
-    )
-
-
 def run_lockstep(
     scenario: Scenario, seed: int, options: EvalOptions | None = None, base_config=None, progress=None
 ) -> RunResult:
@@ -383,6 +372,7 @@ def run_lockstep(
 
     Raises IrtrackError for a bad scenario/option; the caller decides whether a run may fail alone.
     """
+    from groundsim.evaluation.lockstep_guidance import LockstepGuidance
     from groundsim.evaluation.mot import PerceptionScore, gt_rows, tracker_positions, tracker_rows
     from groundsim.world.sim import SimCore
     from onboard.core.irframe import IrFrame
@@ -399,8 +389,8 @@ def run_lockstep(
     core = SimCore(
         scenario, seed, options.duration_s, render=True, flight_chunk_s=chunk_s, nav_noise=options.injected.nav_noise
     )
-    advisor = _guidance_advisor(cfg) if options.guidance else None
-    advices: list[tuple[float, str]] = []  # (scenario t_s, manoeuvre) of each advice followed
+    # the daemon's guidance tap and setpoint gate; home is the scenario's origin on the ground
+    guidance = LockstepGuidance(cfg, core.flight, scenario.origin.alt_m) if options.guidance else None
     buffer = PoseBuffer(cfg.camera.camera_mount(), cfg.pose, cfg.pose.geodetic_origin())
     source = RecordingPoseSource(buffer)  # remembers the pose the pipeline got, for the baseline
     if (
@@ -496,12 +486,14 @@ def run_lockstep(
 
         p0 = time.perf_counter()
         track = None
+        took_frame = False  # the frame went to the pipeline (the daemon's taps see it, track or not)
         if fr.pixels is not None:  # None: the camera model dropped the frame (its shutter was closed)
             stamp = fr.time_boot_us if clock is None else clock.stamp_us(fr.time_boot_us, tr.t_s)
             if stamp is None:  # an early camera clock's stamp before the autopilot's boot: not sent
                 rejected += 1
                 log.debug("frame %d stamped before the autopilot's boot by the camera clock: not sent", k)
             else:
+                took_frame = True
                 try:
                     track = pipeline.process(IrFrame(fr.seq, stamp, fr.pixels))
                 except FrameRejected as exc:  # counted by the pipeline; the frame has no track
@@ -533,16 +525,8 @@ def run_lockstep(
                 c.range_sigma_ratio[k] = nan if track.range_sigma_ratio is None else track.range_sigma_ratio
         if pose is not None:
             c.cam_pose_p[k], c.cam_pose_q[k] = pose.p_cam_ned_m, pose.q_ned_from_cam
-            if advisor is not None and track is not None:
-                # home is the scenario's origin on the ground (the simulated vehicle's relative_alt counts from it)
-                home_alt_m = scenario.origin.alt_m if cfg.guidance.altitude_reference == "home" else 0.0
-                advice = advisor.update(track, pose.p_cam_ned_m, pose.body.v_ned_mps, pose.origin.alt_m - home_alt_m)
-                if advice is not None and advice.recommended:
-                    assert advice.v_ned_mps is not None
-                    core.flight.command_observer(
-                        float(tr.t_s), advice.v_ned_mps, float(tr.t_s) + advice.valid_until_s - advice.t_s
-                    )
-                    advices.append((float(tr.t_s), str(advice.manoeuvre)))
+        if guidance is not None:
+            guidance.frame(float(tr.t_s), took_frame, pose, track)
         mot_gt += gt_rows(k + 1, fr.labels, (tr.target_u_px, tr.target_v_px), bool(tr.target_visible))
         if track is not None:
             mot_tracker += tracker_rows(k + 1, getattr(pipeline.tracker, "last_objects", None), track)
@@ -663,15 +647,7 @@ def run_lockstep(
         chain_centroid_sigma_px=math.nan if chain_sigma_px is None else chain_sigma_px,
         estimator=options.estimator or "map",
         tracker=options.tracker or cfg.imaging.chain,
-        guidance=None
-        if advisor is None
-        else {
-            "advices": len(advices),
-            "first_advice_s": advices[0][0] - float(c.t_s[0]) if advices and F else None,
-            "manoeuvres": [m for _, m in advices],
-            "updates": advisor.updates,
-            "skipped": dict(advisor.skipped),
-        },
+        guidance=None if guidance is None else guidance.summary(float(c.t_s[0]) if F else None),
         mot_gt="".join(mot_gt),
         mot_tracker="".join(mot_tracker),
         perception=perception.figures(),

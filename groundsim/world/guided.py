@@ -9,9 +9,8 @@ the law :func:`onboard.estimation.guidance.candidate_path` predicts with::
     v(t) = v_k + a e (t - t_k)   until |v - v_k| = |v_sp - v_k|,   then v_sp;   p its exact integral.
 
 Past ``valid_until_s`` (None: never) without a newer setpoint the vehicle brakes to a hover at ``max_accel_mps2``, as
-ArduCopter's GUIDED mode does when velocity setpoints stop (``GUIDED_SETPOINT_TIMEOUT_S`` after the last, in the
-real-time flow) and as the daemon's own setpoint gate brakes when its advice ends (the lockstep eval passes the
-advice's expiry).  The JSBSim guidance of
+ArduCopter's GUIDED mode does when velocity setpoints stop (``GUIDED_SETPOINT_TIMEOUT_S`` after the last; the
+real-time flow and the lockstep eval, which runs the daemon's setpoint gate, both pass that).  The JSBSim guidance of
 :class:`groundsim.world.flight.FlownVehicle` follows this reference like any scripted one
 (:meth:`FlownVehicle.reference_changed` after each setpoint).  Frames and units: local NED metres, m/s (see
 :mod:`onboard.core.frames`).

@@ -257,15 +257,18 @@ class GuidanceTap:
             self._log_failure_once("setpoint", "setpoint at shutdown", exc)
         return False
 
+    def plan_pending(self) -> bytes | None:
+        """Plan from the newest frame :meth:`on_frame` handed over, if one is waiting (the tap's thread's turn; the
+        lockstep evaluation calls it in line); the payload published, as :meth:`step`."""
+        slot, self._slot = self._slot, None
+        return None if slot is None else self.step(*slot)
+
     def _loop(self) -> None:
         while not self._stop.is_set():
             self._wake.wait(0.5)
             self._wake.clear()
-            slot, self._slot = self._slot, None
-            if slot is None:
-                continue
             try:
-                self.step(*slot)
+                self.plan_pending()
             except Exception as exc:  # noqa: BLE001 - guidance must never stop the daemon
                 self.advisor.skipped["error"] = self.advisor.skipped.get("error", 0) + 1
                 self._log_failure_once("error", "update", exc)

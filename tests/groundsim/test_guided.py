@@ -48,6 +48,62 @@ def test_a_lapsed_setpoint_brakes_to_a_hover_unless_a_newer_one_comes_first():
     assert ref.state(np.array([6.0])).v_ned_mps[0, 0] == pytest.approx(6.0)
 
 
+def test_eval_guidance_runs_the_daemons_gate_so_a_lost_target_ends_the_advice_at_once():
+    """groundsim eval --guidance commanded each advice straight to the simulated vehicle for its whole validity: a
+    lost target or a newer answer without a manoeuvre did not end it, where the daemon's gate brakes at once.  It
+    runs the daemon's tap and gate now, the simulated vehicle behind a stand-in autopilot link."""
+    import dataclasses
+    from types import SimpleNamespace
+
+    from groundsim.evaluation.lockstep_guidance import LockstepGuidance
+    from groundsim.world.guided import GUIDED_SETPOINT_TIMEOUT_S
+    from onboard.app.config import OnboardConfig
+    from onboard.core.frames import GeodeticOrigin
+    from onboard.core.track import Track
+    from onboard.estimation.guidance import BRAKE_S
+
+    commands: list = []
+    flight = SimpleNamespace(command_observer=lambda t, v, until: commands.append((t, np.asarray(v, float), until)))
+    guidance = LockstepGuidance(OnboardConfig(), flight, home_alt_amsl_m=0.0)
+    origin = GeodeticOrigin(32.0, 118.8, 0.0)
+    cam = np.array([0.0, 40.0, -60.0])  # 60 m above home, flying east at 8 m/s
+    body = SimpleNamespace(p_ned_m=cam, v_ned_mps=np.array([0.0, 8.0, 0.0]))
+    pose = SimpleNamespace(p_cam_ned_m=cam, body=body, origin=origin, pos_extrapolated_us=0)
+    p = np.array([135.0, 50.0, -80.0])
+    u = (p - cam) / np.linalg.norm(p - cam)
+    cov = 4.0 * np.eye(3) + (0.5 * np.linalg.norm(p - cam)) ** 2 * np.outer(u, u)  # range unobservable
+    track = Track(
+        vehicle="uav1",
+        seq=1,
+        time_boot_us=5_000_000,
+        state="tracking",
+        origin=origin,
+        lat_deg=32.0,
+        lon_deg=118.8,
+        alt_m=80.0,
+        p_ned_m=tuple(p),
+        v_ned_mps=(-3.0, -2.0, 0.0),
+        cov_p_ned_m2=cov,
+        range_m=float(np.linalg.norm(p - cam)),
+    )
+    position = ("p_ned_m", "lat_deg", "lon_deg", "alt_m", "v_ned_mps", "cov_p_ned_m2", "range_m")
+    lost = dataclasses.replace(track, **dict.fromkeys(position))
+
+    def frames(t0_s, n, tr):  # 30 Hz
+        for i in range(n):
+            t_s = t0_s + i / 30.0
+            guidance.frame(t_s, True, pose, dataclasses.replace(tr, time_boot_us=int(t_s * 1e6)))
+
+    frames(5.0, 30, track)  # planned on the first frame; handed over; a setpoint every 0.25 s
+    assert len(guidance.advices) == 1 and len(commands) == 3
+    assert all(v.any() and until == t + GUIDED_SETPOINT_TIMEOUT_S for t, v, until in commands)
+    frames(6.0, 60, lost)  # the target lost: the advice in force (valid to 8 s) ends at the next setpoint
+    after = commands[3:]
+    assert after and all(not v.any() for _, v, _ in after)  # zero velocity ...
+    assert after[0][0] <= 6.25 and after[-1][0] - after[0][0] < BRAKE_S  # ... at once, for BRAKE_S, then nothing
+    assert guidance.summary(5.0)["setpoints"] == len(commands) and guidance.summary(5.0)["stops"] == {}
+
+
 @pytest.mark.slow
 def test_eval_with_guidance_leaves_the_straight_line_after_the_first_advice():
     from groundsim.evaluation.eval import EvalOptions, run_lockstep
@@ -56,7 +112,7 @@ def test_eval_with_guidance_leaves_the_straight_line_after_the_first_advice():
     sc = load_scenario(resolve_scenario_path("H3"))
     r = run_lockstep(sc, 0, EvalOptions(duration_s=5.0, batch=False, keep_frame=False, guidance=True))
     assert r.error is None and r.guidance is not None
-    assert r.guidance["advices"] >= 1
+    assert r.guidance["advices"] >= 1 and r.guidance["setpoints"] >= 1 and r.guidance["stops"] == {}
     t0 = r.guidance["first_advice_s"]
     # H3's observer flies straight east at 8 m/s: after the advice it leaves that line
     t = r.t_s - r.t_s[0]
