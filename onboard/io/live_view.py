@@ -124,8 +124,10 @@ _CLIENT_REGISTERED = re.compile(r"^(Registered|Unregistered) client (\S+)$")
 class LiveViewConfig:
     """``live_view``: the Foxglove WebSocket server for watching live (the daemon's section, composed by
     :class:`onboard.app.config.OnboardConfig`).  ``port``: TCP port (null: off); ``host``: the address to
-    bind; ``queue_length``: items the publisher may lag behind; ``los_length_m``: the line of sight drawn
-    without a range; ``trail_points``: positions kept per trail."""
+    bind, the server's only guard (it has no authentication, and foxglove-sdk offers no limit on a client's message
+    size or on connections: loopback or a trusted link, deploy/README.md "Hostile links"); ``queue_length``: items the
+    publisher may lag behind; ``los_length_m``: the line of sight drawn without a range; ``trail_points``: positions
+    kept per trail."""
 
     port: Annotated[int | None, Integer(1, 65535)] = None
     host: Annotated[str, Text()] = "127.0.0.1"

@@ -512,3 +512,17 @@ def test_nothing_is_built_for_a_channel_nobody_subscribes_to_and_the_trails_are_
     scene.ParseFromString(lv._ch["scene"].logged[0].encode())
     trails = {e.id: len(e.lines[0].points) for e in scene.entities if e.id.endswith("_trail")}
     assert trails == {"target_trail": n + 1, "camera_trail": n + 1}
+
+
+def test_the_sdk_still_offers_no_limit_on_client_messages_or_connections():
+    """The live view's only guard against a client's huge messages or many connections is live_view.host (README,
+    deploy/README.md "Hostile links"), because foxglove-sdk (0.30) has no option for either.  Once its options
+    change, this fails: if one limits either, use it in LiveView.start and say so in those documents."""
+    import inspect
+
+    import foxglove
+
+    known = {"name", "host", "port", "capabilities", "server_listener", "supported_encodings", "services"}
+    known |= {"asset_handler", "context", "session_id", "channel_filter", "playback_time_range"}
+    known |= {"message_backlog_size", "tls_cert", "tls_key"}
+    assert set(inspect.signature(foxglove.start_server).parameters) == known
