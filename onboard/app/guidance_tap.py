@@ -57,8 +57,9 @@ def fixed_pod_heading_warning(config: OnboardConfig) -> str | None:
     (``guidance.max_los_off_heading_deg`` above half of it); None otherwise.
 
     The setpoints command no yaw, and an autopilot may turn the nose along the velocity (ArduCopter:
-    WP_YAW_BEHAVIOR), so a manoeuvre across the line of sight can point a fixed pod away from its target.  A warning, not a refusal: whether the nose follows the velocity is the autopilot's setting, which
-    the daemon cannot see, and the bound rules out the crossing manoeuvres that range best."""
+    WP_YAW_BEHAVIOR), so a manoeuvre across the line of sight can point a fixed pod away from its target.  A
+    warning, not a refusal: whether the nose follows the velocity is the autopilot's setting, which the daemon
+    cannot see, and the bound rules out the crossing manoeuvres that range best."""
     g, cam = config.guidance, config.camera
     if not g.enabled or cam.mount.gimballed:
         return None
