@@ -80,7 +80,7 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 KILL_AFTER_S = 3.0  # SIGTERM, then SIGKILL after this
-DAEMON_READY_TIMEOUT_S = 30.0  # first status message from the daemon (imports on a busy machine)
+DAEMON_READY_TIMEOUT_S = 45.0  # first status from the daemon (imports take tens of seconds on a loaded machine)
 SIM_SETUP_ALLOWANCE_S = 30.0  # wall seconds beyond --duration before the simulator is stopped
 DRAIN_QUIET_S = 0.5  # after the simulator ends: wait until no track arrived for this long
 DRAIN_MAX_S = 3.0

@@ -27,8 +27,9 @@ Behaviour measured with eclipse-zenoh 1.10 (peer mode):
 * A listen endpoint whose port is taken fails ``zenoh.open`` at once ("Address already in
   use"): :func:`open_session` raises :class:`ZenohSessionError`.
 * A connect endpoint with nobody listening does NOT fail ``zenoh.open`` (it returns after
-  about 0.5 s) and zenoh keeps retrying in the background: a peer that starts later is joined
-  within about a second or two.  This is what the daemon wants (start before the simulator).
+  about 0.5 s) and zenoh keeps retrying in the background, at most a second apart
+  (:data:`CONNECT_RETRY`; zenoh's own backoff grows to 4 s): a peer that starts later is joined
+  within about a second.  This is what the daemon wants (start before the simulator).
   With ``connect_timeout_s`` set, the session instead requires a peer within that time
   (zenoh ``connect/exit_on_failure`` + ``connect/timeout_ms``) and raises
   :class:`ZenohSessionError` otherwise.
@@ -231,6 +232,9 @@ _OPTION_OF_FIELD = {
 }
 
 
+#: how often a connect endpoint nobody answers yet is dialed again (without a config file; one may set its own)
+CONNECT_RETRY = {"period_init_ms": 250, "period_max_ms": 1000, "period_increase_factor": 2}
+
 #: what the daemon's errors about its zenoh config file call it (its --zenoh-config option sets this field)
 DAEMON_CONFIG_FILE_FIELD = "zenoh.config_file"
 #: and its connect timeout (no option: a config key, as in the fleet's file)
@@ -377,6 +381,10 @@ def build_config(settings: ZenohConfig, *, max_payload_bytes: int | None = None,
         # for a vehicle whose camera reconnects.  Every payload is copied out at once anyway; a config file may
         # still turn it on
         _insert(config, "transport/shared_memory/enabled", False, "transport/shared_memory/enabled")
+        # zenoh's own backoff grows to 4 s between dials: a peer that came up after a slow start (a daemon importing
+        # on a loaded companion, a router restarted) was joined up to 4 s late, and a ground station started first
+        # missed its first tracks.  A dial of a loopback or link-local endpoint a second is cheap
+        _insert(config, "connect/retry", CONNECT_RETRY, "connect/retry")
 
     if settings.connect_timeout_s is not None:
         _insert(config, "connect/exit_on_failure", True, "connect/exit_on_failure")

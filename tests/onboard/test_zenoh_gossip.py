@@ -74,3 +74,14 @@ def test_shared_memory_is_off_unless_a_config_file_says(tmp_path):
     f = tmp_path / "z.json5"
     f.write_text("{ transport: { shared_memory: { enabled: true } } }")
     assert json.loads(build_config(ZenohConfig(config_file=str(f))).get_json("transport/shared_memory/enabled")) is True
+
+
+def test_a_connect_endpoint_is_dialed_again_within_a_second_unless_a_config_file_says(tmp_path):
+    """zenoh's own backoff grows to 4 s between dials, so a peer that came up late was joined up to 4 s after it
+    listened; sessions built from settings alone dial again at most a second apart; a config file keeps the say."""
+    cfg = build_config(ZenohConfig(connect=("tcp/127.0.0.1:7447",)))
+    retry = json.loads(cfg.get_json("connect/retry"))
+    assert retry["period_max_ms"] <= 1000 and retry["period_init_ms"] <= retry["period_max_ms"]
+    f = tmp_path / "z.json5"
+    f.write_text("{ connect: { retry: { period_init_ms: 3000, period_max_ms: 9000, period_increase_factor: 2 } } }")
+    assert json.loads(build_config(ZenohConfig(config_file=str(f))).get_json("connect/retry"))["period_max_ms"] == 9000
