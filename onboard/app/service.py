@@ -85,6 +85,7 @@ from onboard.core.track import Track, track_to_bytes
 from onboard.core.utc_clock import UtcClock, with_utc
 from onboard.io.record import NOT_LOOKED_UP
 from onboard.io.zenoh_session import FRAME_SCHEMA, foreign_schema, frame_key
+from onboard.pipeline.admission import ArrivalGaps
 from onboard.pipeline.frame_pipeline import FramePipeline, FrameRejected, make_tracker
 
 if TYPE_CHECKING:
@@ -191,6 +192,7 @@ class OnboardService:
         self._pipe_stop = threading.Event()
         self._stats_lock = threading.Lock()
         self.frames_in = 0
+        self.arrival_gaps = ArrivalGaps()  # frames numbered by the camera that never reached the daemon
         self.frames_dropped = 0
         self.tracks_published = 0
         self.latency_ms = RollingStats(1000)
@@ -376,7 +378,10 @@ class OnboardService:
             release_health_file(self._health_path)
         if self._pipe_thread is not None:
             log.info(
-                "onboard service stopped: %d frames in, %d tracks published", self.frames_in, self.tracks_published
+                "onboard service stopped: %d frames in, %d missing on the way, %d tracks published",
+                self.frames_in,
+                self.arrival_gaps.missing,
+                self.tracks_published,
             )
 
     # ------------------------------------------------------------------ frames in (zenoh thread)
@@ -397,6 +402,8 @@ class OnboardService:
             max_bytes = self.config.input.max_frame_bytes
             check_payload_size(len(payload), max_bytes)  # before any copy: a 100x frame costs nothing
             frame = decode_irframe(payload.to_bytes(), max_bytes)  # header checks; pixels stay a view
+            with self._stats_lock:
+                self.arrival_gaps.see(frame.seq)
             for tap in self.taps:
                 tap.on_received(frame, received)  # never blocks: queued, or dropped and counted when behind
         except IrFrameError as exc:
@@ -719,6 +726,7 @@ class OnboardService:
         latest = self.newest.value
         with self._stats_lock:
             frames_in, dropped, published = self.frames_in, self.frames_dropped, self.tracks_published
+            missing = self.arrival_gaps.missing
         warnings: list[Mapping[str, str]] = list(self.watchdog.active_dicts())
         status = build_status(
             vehicle=self.config.vehicle,
@@ -726,6 +734,7 @@ class OnboardService:
             frames_in=frames_in,
             frames_processed=self.pipeline.frames_processed,
             frames_dropped=dropped,
+            frames_missing=missing,
             frames_rejected=sum(
                 v for k, v in counts.items() if k.startswith("frame_") and k not in ACCEPTED_FRAME_EVENTS
             ),

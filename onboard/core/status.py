@@ -54,9 +54,10 @@ STATUS_JSON_KEYS: tuple[tuple[str, dict[str, Any]], ...] = (
         {
             "type": "object",
             "properties": {
-                k: {"type": "integer"} for k in ("in", "processed", "dropped", "rejected", "published", "queue_length")
+                k: {"type": "integer"}
+                for k in ("in", "missing", "processed", "dropped", "rejected", "published", "queue_length")
             },
-            "required": ["in", "processed", "dropped", "rejected", "published", "queue_length"],
+            "required": ["in", "missing", "processed", "dropped", "rejected", "published", "queue_length"],
         },
     ),
     (
@@ -237,10 +238,12 @@ def build_status(
     withheld_because: tuple[str, ...] | list[str] = (),
     camera_time_offset: Mapping[str, Any] | None = None,
     last_track_age_s: float | None = None,
+    frames_missing: int = 0,
 ) -> dict[str, Any]:
     """The ``irtrack.status/1`` object (published at 1 Hz on ``irtrack/<vehicle>/status``).
 
-    ``frames``: ``in`` (payloads received), ``processed`` (a Track was produced), ``dropped``
+    ``frames``: ``in`` (payloads received), ``missing`` (frames the camera numbered that never arrived: lost on
+    the way, from the gaps in their sequence numbers; :class:`onboard.pipeline.admission.ArrivalGaps`), ``processed`` (a Track was produced), ``dropped``
     (oldest frames dropped because the pipeline was behind), ``rejected`` (invalid frames: sum of the
     ``frame_*`` reasons), ``published`` (track messages put on zenoh).  ``processing_ms``: decode +
     imaging + pose + estimator per frame; ``latency_ms``: frame receipt to track published (local
@@ -274,6 +277,7 @@ def build_status(
             "in": int(frames_in),
             "processed": int(frames_processed),
             "dropped": int(frames_dropped),
+            "missing": int(frames_missing),
             "rejected": int(frames_rejected),
             "published": int(tracks_published),
             "queue_length": int(queue_length),

@@ -68,6 +68,7 @@ __all__ = [
     "RATE_FRAMES",
     "Admission",
     "FrameAdmission",
+    "ArrivalGaps",
 ]
 
 SEQ_MOD = 2**32
@@ -296,3 +297,36 @@ class FrameAdmission:
         if not event and not message and not restart:
             return _ACCEPTED
         return Admission(True, event, message, restart)
+
+
+class ArrivalGaps:
+    """Frames the sender numbered that never arrived, from the gaps in the sequence numbers of the frames as they
+    arrive (before the daemon's queue, whose own drops are counted apart): lost by the camera's sender, the network,
+    or zenoh's congestion control, which drops rather than delays a camera's frames.  Pure, not thread-safe.
+
+    A forward step of ``d`` frames counts ``d - 1`` missing, unless ``d`` is over ``max_gap`` (a sender numbering
+    anew, not frames lost: counted as nothing).  A frame up to ``reorder`` behind the newest arrived late: one of
+    those counted missing came after all.  Further behind, the sender restarted its numbering: taken as the new
+    newest.  A duplicate changes nothing."""
+
+    def __init__(self, max_gap: int = 1000, reorder: int = 8) -> None:
+        self.max_gap = int(max_gap)
+        self.reorder = int(reorder)
+        self.newest: int | None = None
+        self.missing = 0
+
+    def see(self, seq: int) -> None:
+        if self.newest is None:
+            self.newest = seq
+            return
+        step = (seq - self.newest) % SEQ_MOD
+        if step == 0:
+            return
+        if step < SEQ_MOD // 2:
+            if step <= self.max_gap:
+                self.missing += step - 1
+            self.newest = seq
+        elif SEQ_MOD - step <= self.reorder:
+            self.missing = max(0, self.missing - 1)
+        else:
+            self.newest = seq

@@ -694,6 +694,7 @@ def test_rolling_stats_and_status_document():
         frames_in=10,
         frames_processed=7,
         frames_dropped=1,
+        frames_missing=3,
         frames_rejected=2,
         tracks_published=7,
         processing_ms=s,
@@ -709,7 +710,15 @@ def test_rolling_stats_and_status_document():
     text = json.dumps(st_, allow_nan=False)
     back = json.loads(text)
     assert back["schema"] == STATUS_SCHEMA
-    assert back["frames"] == {"in": 10, "processed": 7, "dropped": 1, "rejected": 2, "published": 7, "queue_length": 0}
+    assert back["frames"] == {
+        "in": 10,
+        "missing": 3,
+        "processed": 7,
+        "dropped": 1,
+        "rejected": 2,
+        "published": 7,
+        "queue_length": 0,
+    }
     assert back["link"] == {"state": "connected", "rates_confirmed": [31, 33], "heartbeat_age_s": None}
     assert back["track"]["has_position"] is True and back["cpu"]["share"] == 0.5
     assert back["rejected"] == {"dropped_queue": 1, "frame_magic": 2}

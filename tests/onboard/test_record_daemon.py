@@ -10,6 +10,7 @@ from __future__ import annotations
 import base64
 import json
 import os
+import re
 import signal
 import subprocess
 import time
@@ -142,8 +143,9 @@ def record_pair(
             while time.monotonic() < t_end:
                 time.sleep(0.3)
                 status = store.snapshot()[1] or {}
-                frames_in = status.get("frames", {}).get("in", 0)
-                if len(store.tracks) == last and frames_in >= n_sent:
+                frames = status.get("frames", {})
+                # a frame lost on the way (zenoh drops a camera's frames rather than delay them) is counted missing
+                if len(store.tracks) == last and frames.get("in", 0) + frames.get("missing", 0) >= n_sent:
                     break
                 last = len(store.tracks)
     finally:
@@ -195,8 +197,13 @@ def test_closed_loop_recording_has_every_channel_with_its_schema_and_counts(reco
     assert n_sent == int(DURATION_S * 30) and len(sim_by["/groundsim/truth"]) == n_sent
     status = r.status
     frames_in = status["frames_in"] if "frames_in" in status else status["frames"]["in"]
-    # the daemon recorded every frame it received, and one track per track it published (seen by us over zenoh)
-    assert len(by["irtrack/uav1/ir/frame"]) == n_sent
+    # the daemon recorded every frame it received (its last words say how many), and one track per track it
+    # published (seen by us over zenoh); a frame lost on the way under the suite's load is counted missing
+    stopped = re.search(r"stopped: (\d+) frames in, (\d+) missing on the way", (r.out / "onboard.log").read_text())
+    assert stopped, (r.out / "onboard.log").read_text()[-3000:]
+    received, missing = int(stopped[1]), int(stopped[2])
+    assert len(by["irtrack/uav1/ir/frame"]) == received and received + missing <= n_sent
+    assert received >= 0.9 * n_sent, (received, missing, n_sent)
     # (the inline estimator's model selections stall the pipeline: the queue drops frames, the recording says which)
     assert len(by["irtrack/uav1/track"]) == len(r.tracks) >= n_sent // 2
     assert [json.loads(m.data) for _, _, m in by["irtrack/uav1/track"]] == r.tracks

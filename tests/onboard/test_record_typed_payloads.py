@@ -104,3 +104,17 @@ def test_daemon_frame_callback_accepts_typed_and_untyped_refuses_foreign_schema(
         assert svc.counter.counts.get("frame_schema") == 1
     finally:
         svc.close()
+
+
+def test_daemon_counts_the_frames_that_never_arrived_in_its_status():
+    """Frames 1, 2, 5, 4, 9 arrive (3, 6, 7, 8 lost on the way; 4 late): the status's frames.missing is 4 and
+    frames.in 5."""
+    cfg = build_config({"estimator": {"enabled": False}, "output": {"health_file": None}})  # never started
+    svc = OnboardService(cfg)
+    try:
+        for seq in (1, 2, 5, 4, 9):
+            svc._on_frame(_Sample(encode_irframe(IrFrame(seq, 1000 * seq, np.zeros((4, 6), np.uint8)))))
+        frames = svc.status()["frames"]
+        assert (frames["in"], frames["missing"]) == (5, 4)
+    finally:
+        svc.close()
