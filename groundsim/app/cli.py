@@ -226,6 +226,15 @@ def _add_run(p: argparse.ArgumentParser) -> None:
         " sends none unless guidance.enabled); --no-guided: a generic autopilot that ignores them (default: guided)",
     )
     p.add_argument(
+        "--gimbal-frame",
+        choices=("earth", "vehicle"),
+        default="earth",
+        help="the frame of a gimballed vehicle's GIMBAL_DEVICE_ATTITUDE_STATUS (#285): earth (YAW_IN_EARTH_FRAME,"
+        " delta_yaw = vehicle yaw) or vehicle (ArduPilot's: ROLL_LOCK | PITCH_LOCK | YAW_IN_VEHICLE_FRAME |"
+        " YAW_LOCK, delta_yaw NaN, stamped when sent; the daemon turns it with the vehicle's attitude)"
+        " (default: %(default)s)",
+    )
+    p.add_argument(
         "--no-render", action="store_true", help="do not render or publish IR frames (MAVLink and truth only)"
     )
     p.add_argument(
@@ -304,6 +313,7 @@ def _run_config(args):
         injected=InjectedErrors.from_options(args.nav_noise, args.gnss_dropout, args.camera_time_offset_ms),
         record_path=Path(args.record) if args.record else None,
         guided=bool(getattr(args, "guided", True)),
+        gimbal_frame=getattr(args, "gimbal_frame", "earth"),
         signing_key=_signing_key(getattr(args, "mavlink_signing_key", None)),
     )
 
@@ -476,6 +486,12 @@ def _add_eval(p: argparse.ArgumentParser) -> None:
         " single, ...) or module:Attribute (default: the configuration's imaging.chain)",
     )
     p.add_argument("--no-batch", action="store_true", help="skip the whole-flight MAP columns and the CRB")
+    p.add_argument(
+        "--gimbal-frame",
+        choices=("earth", "vehicle"),
+        default="earth",
+        help="the frame a gimballed observer's #285 is encoded in, as groundsim run --gimbal-frame (default: earth)",
+    )
     p.add_argument(
         "--guidance",
         action="store_true",

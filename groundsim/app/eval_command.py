@@ -153,6 +153,7 @@ def cmd_eval(args) -> int:
             estimator=getattr(args, "estimator", None),
             tracker=getattr(args, "tracker", None),
             guidance=bool(getattr(args, "guidance", False)),
+            gimbal_frame=getattr(args, "gimbal_frame", "earth"),
         )
         for n in nav_noises[1:]:
             options.with_nav_noise(n)  # validates every name before anything runs

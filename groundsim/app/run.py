@@ -281,6 +281,9 @@ class RunConfig:
     start_time_now: bool = False
     #: --mavlink-signing-key: MAVLink 2 signing of every vehicle's link with this 32-byte key (None: unsigned)
     signing_key: bytes | None = None
+    #: --gimbal-frame: the frame of a gimballed vehicle's #285, ``earth`` or ``vehicle`` (ArduPilot's, whatever the
+    #: heartbeat says: groundsim.io.mavlink_vehicle)
+    gimbal_frame: str = "earth"
 
     def __post_init__(self) -> None:
         sc = self.scenario
@@ -297,6 +300,8 @@ class RunConfig:
         if u is not None and (isinstance(u, bool) or not isinstance(u, int) or not 0 <= u < 2**62):
             raise ConfigError(f"RunConfig.start_time_unix_us must be a UNIX time in us or None, got {u!r}")
         object.__setattr__(self, "run_seed", check_run_seed(self.run_seed))
+        if self.gimbal_frame not in ("earth", "vehicle"):
+            raise ConfigError(f"--gimbal-frame: expected earth or vehicle, got {self.gimbal_frame!r}")
         object.__setattr__(self, "duration_s", check_duration_s(self.duration_s, sc))
         object.__setattr__(self, "scenario", extend_scenario(sc, self.duration_s))
         if not isinstance(self.rate, RateSpec):
@@ -733,6 +738,7 @@ def run(config: RunConfig, stop: threading.Event | None = None, clock=None) -> R
             leg.mavlink = MavlinkVehicle(
                 conn,
                 gimballed=core.gimballed,
+                gimbal_yaw_frame=config.gimbal_frame,
                 guided=config.guided,
                 gnss_outage_us=outage,
                 gnss_accuracy=core.nav_noise.gnss_accuracy_m(),
@@ -762,7 +768,9 @@ def run(config: RunConfig, stop: threading.Event | None = None, clock=None) -> R
                 sc.name,
                 config.run_seed,
                 core.duration_s,
-                "gimballed" if core.gimballed else "fixed pod (observer yaws toward the target)",
+                f"gimballed (#285 in the {config.gimbal_frame} frame)"
+                if core.gimballed
+                else "fixed pod (observer yaws toward the target)",
                 core.nav_noise.name,
                 getattr(leg.mavlink, "connection", ""),
                 frame_key(leg.name),

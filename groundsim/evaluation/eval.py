@@ -142,8 +142,13 @@ class EvalOptions:
     #: rotation is bracketed, else its rotation extrapolated; None: every frame's telemetry fed until it brackets
     #: the frame (a camera whose frames arrive after their telemetry)
     rotation_wait_us: int | None = None
+    #: the frame a gimballed observer's #285 is encoded in (``groundsim run --gimbal-frame``): ``earth`` or
+    #: ``vehicle`` (ArduPilot's: the daemon turns it with the vehicle's attitude stream)
+    gimbal_frame: str = "earth"
 
     def __post_init__(self) -> None:
+        if self.gimbal_frame not in ("earth", "vehicle"):
+            raise ConfigError(f"--gimbal-frame: expected earth or vehicle, got {self.gimbal_frame!r}")
         d = self.duration_s
         if d is not None and (isinstance(d, bool) or not isinstance(d, (int, float)) or not math.isfinite(d) or d <= 0):
             raise ConfigError(f"--duration: expected a positive number of seconds, got {d!r}")
@@ -416,6 +421,7 @@ def run_lockstep(
         (m.attitude_rate_hz, m.position_rate_hz, m.gimbal_rate_hz),
         None if gd is None else gd.boot_window_us(core.boot_start_us),
         body_rates=options.rotation_wait_us is not None,
+        gimbal_frame=options.gimbal_frame,
     )
     gnss_warning_t_s = math.nan
     # the daemon's own checks (gnss_dropout, camera_time_offset), on the frames' time

@@ -32,8 +32,11 @@ class TelemetryFeed:
         rates_hz: tuple[float, float, float] = (ATT_RATE_HZ, POS_RATE_HZ, GIMBAL_RATE_HZ),
         gnss_outage_us: tuple[int, int] | None = None,
         body_rates: bool = False,
+        gimbal_frame: str = "earth",
     ) -> None:
         self.core = core
+        #: #285's frame, encoded as MavlinkVehicle encodes it (groundsim.io.mavlink_vehicle.gimbal_device_attitude_status)
+        self.gimbal_frame = gimbal_frame
         #: feed the attitude's body rates, as the daemon's link gets them, so that a pose past the newest sample is
         #: extrapolated as in the daemon (:meth:`feed_for_rotation`); off, a lookup waits for its bracket
         self.body_rates = bool(body_rates)
@@ -57,12 +60,12 @@ class TelemetryFeed:
         the wire's quantisation).  The body rates are fed only with ``body_rates`` (the gimbal's are NaN on the
         simulated vehicle's wire anyway): the lockstep loop waits for the bracketing sample instead of
         extrapolating (the benchmark's accuracy tables are defined so)."""
+        from groundsim.io.mavlink_vehicle import gimbal_device_attitude_status
         from groundsim.world.nav_errors import reported_state
         from onboard.io.mavlink_wire import (
             AttitudeQuaternion,
             GimbalDeviceAttitudeStatus,
             GlobalPositionInt,
-            mavlink2,
             wire_roundtrip,
         )
 
@@ -108,8 +111,8 @@ class TelemetryFeed:
             elif st["q_gimbal"] is not None:
                 gim = GimbalDeviceAttitudeStatus.from_message(
                     wire_roundtrip(
-                        GimbalDeviceAttitudeStatus(
-                            now, tuple(st["q_gimbal"]), mavlink2.GIMBAL_DEVICE_FLAGS_YAW_IN_EARTH_FRAME
+                        gimbal_device_attitude_status(
+                            now, now, st["q_gimbal"], st["q_ned_from_body"], self.gimbal_frame
                         ).to_message()
                     )
                 )

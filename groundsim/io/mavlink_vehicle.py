@@ -25,10 +25,12 @@ GLOBAL_POSITION_INT (#33)                    25 Hz     lat, lon degE7; alt mm AM
                                                        vx, vy, vz cm/s NED (int16, saturated);
                                                        hdg cdeg 0..35999 (UINT16_MAX if unknown)
 GIMBAL_DEVICE_ATTITUDE_STATUS (#285)         10 Hz     only when ``gimballed``: q = gimbal attitude
-                                                       (w, x, y, z) in the earth frame (flag
-                                                       YAW_IN_EARTH_FRAME, default) or the vehicle
-                                                       frame (YAW_IN_VEHICLE_FRAME); delta_yaw =
-                                                       vehicle yaw; rates NaN; gimbal_device_id 1
+                                                       (w, x, y, z) in the earth frame (``earth``:
+                                                       flag YAW_IN_EARTH_FRAME, delta_yaw = vehicle
+                                                       yaw) or, as ArduPilot sends it, the vehicle
+                                                       frame (``vehicle``: ROLL_LOCK | PITCH_LOCK |
+                                                       YAW_IN_VEHICLE_FRAME | YAW_LOCK, delta_yaw
+                                                       NaN); rates NaN; gimbal_device_id 1
 SYS_STATUS (#1)                              1 Hz      gyro, accel, mag, baro, GPS, AHRS, battery
                                                        present/enabled/healthy; 4S battery volts,
                                                        current, remaining (linear drain from 100 %)
@@ -87,8 +89,13 @@ the vehicle is, as the body's (``SimCore.vehicle_state``; :mod:`onboard.core.fra
 ``q_ned_from_body (x) q_body_from_mount (x) q_mount_from_gimbal``.  MAVLink gimbal protocol v2
 frames: "earth frame" is that local level, so q is sent as is; "vehicle frame" is it turned by the vehicle's
 yaw (roll and pitch still relative to the horizon), so q is sent as
-``conj(q_yaw) (x) q_ned_from_gimbal`` with ``q_yaw = quat_from_euler(0, 0, yaw)``.  In both,
-``delta_yaw`` = the vehicle yaw, the spec's ``q_earth = q_delta_yaw (x) q_vehicle``.
+``conj(q_yaw) (x) q_ned_from_gimbal`` with ``q_yaw = quat_from_euler(0, 0, yaw)``
+(:func:`gimbal_device_attitude_status`, which the lockstep eval's telemetry encodes with too).  ``earth`` sends
+``delta_yaw`` = the vehicle yaw (the spec's ``q_earth = q_delta_yaw (x) q_vehicle``); ``vehicle`` is what
+ArduPilot's mount sends (AP_Mount_Backend::send_gimbal_device_attitude_status and get_gimbal_device_flags): roll and
+pitch always earth-locked, yaw in the vehicle frame, YAW_LOCK while it points at a location (the simulated gimbal
+aims at the target), no delta_yaw (NaN), ``time_boot_ms`` when it is sent, ``gimbal_device_id`` = mount instance +
+1 = 1; the receiver turns it into the earth frame with the vehicle's own attitude stream.
 
 Garbage on the link is counted (``counters['rx_bad_data']``, ``['rx_unknown']``) and skipped by
 pymavlink's resynchronising parser; a partial frame left by garbage can swallow the next two
@@ -150,6 +157,8 @@ __all__ = [
     "VehicleState",
     "MavlinkVehicle",
     "open_mavlink2",
+    "GIMBAL_FRAMES",
+    "gimbal_device_attitude_status",
 ]
 
 log = logging.getLogger(__name__)
@@ -237,6 +246,45 @@ _BASE_MODE = (
 ARDUCOPTER_GUIDED_MODE = 4
 #: ArduCopter's LOITER custom_mode: the guided vehicle's mode until its pilot hands it over to the companion
 ARDUCOPTER_LOITER_MODE = 5
+
+
+#: GIMBAL_DEVICE_ATTITUDE_STATUS's frames (:func:`gimbal_device_attitude_status`)
+GIMBAL_FRAMES = ("earth", "vehicle")
+#: ArduPilot's #285 flags for a mount pointing at a location (get_gimbal_device_flags: roll and pitch always
+#: earth-locked, yaw in the vehicle frame, locked on the scenery)
+ARDUPILOT_GIMBAL_FLAGS = (
+    mavlink2.GIMBAL_DEVICE_FLAGS_ROLL_LOCK
+    | mavlink2.GIMBAL_DEVICE_FLAGS_PITCH_LOCK
+    | mavlink2.GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME
+    | mavlink2.GIMBAL_DEVICE_FLAGS_YAW_LOCK
+)
+
+
+def gimbal_device_attitude_status(
+    state_time_boot_us: int, send_time_boot_us: int, q_ned_from_gimbal, q_ned_from_body, frame: str
+) -> GimbalDeviceAttitudeStatus:
+    """GIMBAL_DEVICE_ATTITUDE_STATUS of a gimbal attitude ``q_ned_from_gimbal`` (w, x, y, z, the local level's) on a
+    vehicle at ``q_ned_from_body``, in ``frame`` (module docstring, "Gimbal"): ``earth`` stamped with the state's
+    time, q as is, delta_yaw = the vehicle yaw; ``vehicle`` as ArduPilot sends it, stamped when sent
+    (``send_time_boot_us``: ArduPilot's AP_HAL::millis() at the send), q with the vehicle's yaw taken out,
+    :data:`ARDUPILOT_GIMBAL_FLAGS`, delta_yaw NaN.  Rates NaN, gimbal_device_id 1 in both."""
+    if frame not in GIMBAL_FRAMES:
+        raise MavlinkConfigError(f"gimbal frame must be one of {', '.join(GIMBAL_FRAMES)}, got {frame!r}")
+    _, _, yaw_rad = euler_from_quat(np.asarray(q_ned_from_body, dtype=float))
+    yaw_rad = float(yaw_rad)
+    if frame == "earth":
+        return GimbalDeviceAttitudeStatus(
+            int(state_time_boot_us),
+            tuple(float(c) for c in q_ned_from_gimbal),
+            mavlink2.GIMBAL_DEVICE_FLAGS_YAW_IN_EARTH_FRAME,
+            delta_yaw_rad=yaw_rad,
+            gimbal_device_id=1,
+        )
+    q_yaw = quat_from_euler(0.0, 0.0, yaw_rad)
+    q = quat_normalize(quat_multiply(quat_conjugate(q_yaw), np.asarray(q_ned_from_gimbal, dtype=float)))
+    return GimbalDeviceAttitudeStatus(
+        int(send_time_boot_us), tuple(float(c) for c in q), ARDUPILOT_GIMBAL_FLAGS, gimbal_device_id=1
+    )
 
 
 class MavlinkConfigError(ConfigError):
@@ -429,7 +477,7 @@ class MavlinkVehicle:
         for name, v in rates.items():
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or not 0 < v <= 1000:
                 raise MavlinkConfigError(f"MavlinkVehicle.{name} must be in (0, 1000] Hz, got {v!r}")
-        if gimbal_yaw_frame not in ("earth", "vehicle"):
+        if gimbal_yaw_frame not in GIMBAL_FRAMES:
             raise MavlinkConfigError(
                 f"MavlinkVehicle.gimbal_yaw_frame must be 'earth' or 'vehicle', got {gimbal_yaw_frame!r}"
             )
@@ -738,18 +786,10 @@ class MavlinkVehicle:
         return True
 
     def _gimbal_status(self, s: VehicleState) -> GimbalDeviceAttitudeStatus:
-        """GIMBAL_DEVICE_ATTITUDE_STATUS for the configured frame (module docstring); rates unknown, device 1."""
-        _, _, yaw_rad = euler_from_quat(np.asarray(s.q_ned_from_body))
-        yaw_rad = float(yaw_rad)
-        if self.gimbal_yaw_frame == "earth":
-            flags, q = mavlink2.GIMBAL_DEVICE_FLAGS_YAW_IN_EARTH_FRAME, s.q_ned_from_gimbal
-        else:
-            q_yaw = quat_from_euler(0.0, 0.0, yaw_rad)
-            q = tuple(
-                float(c) for c in quat_normalize(quat_multiply(quat_conjugate(q_yaw), np.asarray(s.q_ned_from_gimbal)))
-            )
-            flags = mavlink2.GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME
-        return GimbalDeviceAttitudeStatus(s.time_boot_us, q, flags, delta_yaw_rad=yaw_rad, gimbal_device_id=1)
+        """GIMBAL_DEVICE_ATTITUDE_STATUS of the state in the configured frame (module docstring)."""
+        return gimbal_device_attitude_status(
+            s.time_boot_us, self._now_us, s.q_ned_from_gimbal, s.q_ned_from_body, self.gimbal_yaw_frame
+        )
 
     def _global_position_int(self, s: VehicleState) -> GlobalPositionInt:
         """GLOBAL_POSITION_INT of the state, each velocity component saturated to the wire's int16 cm/s (logged)."""

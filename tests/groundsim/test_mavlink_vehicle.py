@@ -398,10 +398,11 @@ def test_request_message_sends_one_now(link):
 
 
 @pytest.mark.integration
-@pytest.mark.parametrize("yaw_frame, flag", [("earth", 64), ("vehicle", 32)])
-def test_gimballed_vehicle_sends_gimbal_device_attitude_status(yaw_frame, flag):
-    """q_gimbal is q_ned_from_gimbal; on the wire: NED as is (earth frame), or with the vehicle's
-    yaw taken out (vehicle frame); delta_yaw = vehicle yaw either way."""
+@pytest.mark.parametrize("yaw_frame, flags", [("earth", 64), ("vehicle", 4 | 8 | 16 | 32)])
+def test_gimballed_vehicle_sends_gimbal_device_attitude_status(yaw_frame, flags):
+    """q_gimbal is q_ned_from_gimbal; on the wire: NED as is (earth frame, delta_yaw = vehicle yaw), or with the
+    vehicle's yaw taken out as ArduPilot sends it (vehicle frame: ROLL_LOCK | PITCH_LOCK | YAW_LOCK |
+    YAW_IN_VEHICLE_FRAME, delta_yaw NaN)."""
     port = free_udp_port()
     rx = open_mavlink2(f"udpin:127.0.0.1:{port}", GCS_SYS, GCS_COMP)
     q_ned_from_gimbal = tuple(float(x) for x in quat_from_euler(0.05, -0.5, 2.2))
@@ -414,9 +415,12 @@ def test_gimballed_vehicle_sends_gimbal_device_attitude_status(yaw_frame, flag):
     gim = _of(msgs, "GIMBAL_DEVICE_ATTITUDE_STATUS")
     assert len(gim) == 10
     g = gim[3]
-    assert g.time_boot_ms == 300 and g.flags & flag and not g.flags & (96 ^ flag)
+    assert g.time_boot_ms == 300 and g.flags == flags and g.gimbal_device_id == 1
     yaw_rad = float(euler_from_quat(np.asarray(Q_NED_FROM_BODY))[2])
-    assert g.delta_yaw == pytest.approx(yaw_rad, abs=1e-6)
+    if yaw_frame == "earth":
+        assert g.delta_yaw == pytest.approx(yaw_rad, abs=1e-6)
+    else:
+        assert math.isnan(g.delta_yaw)
     q_wire = np.asarray(g.q, dtype=float)
     q_back = q_wire if yaw_frame == "earth" else quat_multiply(quat_from_euler(0.0, 0.0, yaw_rad), q_wire)
     # same rotation (q and -q are equal)

@@ -263,6 +263,29 @@ def test_telemetry_feed_injects_the_same_errors_as_the_vehicle():
     np.testing.assert_allclose(rotvec_from_quat(pose.body.q_ned_from_body), err.att_err_ned_rad, atol=1e-6)
 
 
+def test_telemetry_feed_encodes_the_gimbal_as_the_vehicle_does():
+    """The lockstep eval's #285 (--gimbal-frame) is the simulated vehicle's, and either frame gives the pose buffer
+    the same gimbal: the vehicle frame is turned back with the attitude stream."""
+    from onboard.io.mavlink_wire import GimbalReference
+
+    sc = load_scenario(P1)
+    got = {}
+    for frame, ref in (("earth", GimbalReference.EARTH), ("vehicle", GimbalReference.VEHICLE)):
+        core = SimCore(sc, 0, 1.0, render=False, nav_noise="exact")
+        buf = PoseBuffer(CameraMount(gimballed=True), PoseConfig(), sc.origin)
+        feed = TelemetryFeed(core, buf, gimballed=True, gimbal_frame=frame)
+        while not feed.exhausted:
+            feed.feed_next()
+        assert buf._gim_ref == ref
+        got[frame] = buf.pose_at(core.time_boot_us(60)).q_mount_from_gimbal  # a gimbal sample (10 Hz: every 12 ticks)
+    assert abs(float(np.dot(got["earth"], got["vehicle"]))) == pytest.approx(1.0, abs=1e-12)
+
+
+def test_eval_gimbal_frame_is_validated():
+    with pytest.raises(ConfigError, match="--gimbal-frame"):
+        EvalOptions(gimbal_frame="body")
+
+
 # --------------------------------------------------------------------------- options and files
 
 

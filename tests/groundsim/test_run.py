@@ -626,6 +626,31 @@ def test_run_config_validates():
             RunConfig(sc, **kw)
 
 
+@pytest.mark.parametrize("argv, frame", [([], "earth"), (["--gimbal-frame", "vehicle"], "vehicle")])
+def test_gimbal_frame_option_reaches_the_simulated_vehicle(monkeypatch, argv, frame):
+    """--gimbal-frame sets the frame of the vehicle's #285: earth unless asked (README, "MAVLink": why)."""
+    import groundsim.io.mavlink_vehicle as mv
+
+    made = {}
+
+    class Opened(Exception):
+        pass
+
+    def fake_vehicle(connection, **kw):
+        made.update(kw)
+        raise Opened
+
+    monkeypatch.setattr(mv, "MavlinkVehicle", fake_vehicle)
+    args = cli.build_parser().parse_args(["run", "--scenario", "P1", "--no-render", *argv])
+    config = cli._run_config(args)
+    assert config.gimbal_frame == frame
+    with pytest.raises(Opened):
+        run(dataclasses.replace(config, render=False))
+    assert made["gimbal_yaw_frame"] == frame and made["gimballed"]
+    with pytest.raises(ConfigError, match="--gimbal-frame"):
+        RunConfig(load_scenario(P1), gimbal_frame="body")
+
+
 ORIGIN = GeodeticOrigin(32.0, 118.8, 0.0)
 K = PinholeIntrinsics.vue_pro_640()
 # camera looking north (cam z = N, cam x = E, cam y = D): q_ned_from_cam = q_ned_from_mount(identity) x mount->cam
