@@ -32,8 +32,9 @@ lint: $(STAMP)
 # skipped test fails the run (tests/conftest.py): a check against an independent reader must run, not pass unseen.
 # Two pytest-xdist workers, one per core: the tests that start processes run on one of them, one at a time as in a
 # serial run, while the other runs the in-process tests (tests/conftest.py says why; docs/performance.md the times).
+# The 15 slowest tests are listed at the end, to keep the whole suite within 8 minutes on a fresh clone in sight.
 test: lint
-	@IRTRACK_NO_SKIPS=1 $(PY) -m pytest -n 2 --dist loadgroup; rc=$$?; \
+	@IRTRACK_NO_SKIPS=1 $(PY) -m pytest -n 2 --dist loadgroup --durations=15; rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "make test: NO TESTS RAN (pytest exit 5)"; exit 0; fi; \
 	exit $$rc
 
