@@ -62,9 +62,12 @@ Navigation errors: ``update_state(..., nav_error=sample)`` reports the state wit
 attitude, position offset/drift/white noise on #33's lat/lon/alt, drift rate on its velocity);
 ``groundsim.app.run`` passes the run's :class:`~groundsim.world.nav_errors.NavErrorModel` sample of each tick.
 
-Rates: SET_MESSAGE_INTERVAL may set any stream up to the poll rate (``groundsim.app.run`` polls and
-updates the state at 120 Hz at 30 fps, so #285 at 100 Hz is honoured: a sample per 10 ms due
-time, each with a fresh state).
+Rates: SET_MESSAGE_INTERVAL of any interval > 0 is ACCEPTED and stored (MESSAGE_INTERVAL reports it back), but a
+stream goes out at most once per :meth:`~MavlinkVehicle.poll`, so what is sent is capped at the poll rate without a
+word: ``groundsim.app.run`` polls and updates the state on its tick, 120 Hz at 30 fps, so 1 ms is ACCEPTED and
+delivered at 120 Hz, and 100 Hz comes on that tick grid (8.3 and 16.7 ms steps, 100 a second on average).
+ArduPilot does the same (it caps a stream at its scheduler's rate and still ACCEPTS), hence no DENIED here; the
+daemon measures what it gets (status ``link.streams``, warning ``stream_rate_low``).
 
 Data messages (#31, #33, #285) carry the *state's* ``time_boot_ms`` (when the sample is true)
 and are not repeated for an unchanged state: a stream is due by its interval but waits for a

@@ -654,6 +654,9 @@ class OnboardService:
                 telemetry_since_s=self._first_telemetry_s,
             )
             self.watchdog.gnss(now, getattr(self.link, "gnss", None))
+            slow_streams = getattr(self.link, "slow_streams", None)
+            if slow_streams is not None:
+                self.watchdog.stream_rates(now, slow_streams())
             self.watchdog.utc(now, self.utc.mapping)
         video = next((t for t in self.taps if isinstance(t, VideoTap)), None)
         if video is not None and video.streamer is not None:

@@ -428,6 +428,25 @@ class Watchdog:
             f"receiver and its view of the sky",
         )
 
+    def stream_rates(self, now_s: float, slow) -> None:
+        """The requested telemetry streams arriving at under half their confirmed rate for a few seconds (a list of
+        :class:`~onboard.core.stream_rate.StreamRate`, from the link; empty: none): warned once, naming each."""
+        self._hold(
+            "stream_rate_low",
+            "; ".join(
+                f"{r.name} (#{r.msg_id}) arrives at {r.measured_hz:.1f} Hz, {r.requested_hz:g} Hz requested and "
+                f"ACCEPTED"
+                for r in slow
+            )
+            + (
+                ": the autopilot caps the stream (its scheduler or the link's bandwidth: ArduPilot ACCEPTS and sends "
+                "what it can) or the link loses messages; poses are interpolated over wider gaps. Check the "
+                "autopilot's stream rate limits and the link (status link.streams)"
+                if slow
+                else ""
+            ),
+        )
+
     def utc(self, now_s: float, mapping) -> None:
         """The UTC mapping frames are stamped with (an :class:`~onboard.core.utc_clock.UtcMapping`; None: none yet,
         ignored): warned while it is disputed, a SYSTEM_TIME disagreeing with it and no step confirmed."""

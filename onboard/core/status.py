@@ -253,7 +253,8 @@ def build_status(
     ``capture_to_track_ms``: capture (boot clock) to track published, via TIMESYNC (null until
     synced).  Each is ``{n, p50, p99, max}`` over the last samples.  ``rejected``: every counted
     rejection by reason (frames, telemetry, MAVLink, estimator).  ``link``: the MAVLink link state, with
-    ``gnss`` the autopilot's GNSS fix from GPS_RAW_INT (:meth:`onboard.core.gnss.GnssState.summary`; null until one).
+    ``gnss`` the autopilot's GNSS fix from GPS_RAW_INT (:meth:`onboard.core.gnss.GnssState.summary`; null until one)
+    and ``streams``, per requested stream its ``requested_hz`` and ``measured_hz`` (:mod:`onboard.core.stream_rate`).
     ``cpu``: ``share`` = process CPU time / wall time over the last interval (1.0 = one core),
     ``pipeline_share`` = the pipeline thread's, ``cores`` = CPUs in the machine; the service adds
     ``gets_share``, ``throttled_share``, ``needs_share``, ``throttled_periods`` and ``quota_cores`` from

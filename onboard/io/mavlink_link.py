@@ -87,7 +87,7 @@ import math
 import time
 from collections import OrderedDict
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from pymavlink.dialects.v20 import common as mavlink2
@@ -99,6 +99,7 @@ from onboard.core.frames import QUAT_NORM_TOL
 from onboard.core.gnss import GPS_FIX_NAMES, GnssState
 from onboard.core.pose_sink import PoseSink
 from onboard.core.schema import show
+from onboard.core.stream_rate import StreamRate, StreamRates
 from onboard.core.utc_clock import UtcClock
 from onboard.io.mavlink_config import MavlinkConfig, parse_connection
 from onboard.io.mavlink_fast import decode_telemetry
@@ -151,6 +152,11 @@ LINK_LOST = "lost"
 MSG_ID_ATTITUDE_QUATERNION = mavlink2.MAVLINK_MSG_ID_ATTITUDE_QUATERNION  # 31
 MSG_ID_GLOBAL_POSITION_INT = mavlink2.MAVLINK_MSG_ID_GLOBAL_POSITION_INT  # 33
 MSG_ID_GIMBAL_DEVICE_ATTITUDE_STATUS = mavlink2.MAVLINK_MSG_ID_GIMBAL_DEVICE_ATTITUDE_STATUS  # 285
+_STREAM_NAMES = {
+    MSG_ID_ATTITUDE_QUATERNION: "ATTITUDE_QUATERNION",
+    MSG_ID_GLOBAL_POSITION_INT: "GLOBAL_POSITION_INT",
+    MSG_ID_GIMBAL_DEVICE_ATTITUDE_STATUS: "GIMBAL_DEVICE_ATTITUDE_STATUS",
+}
 
 _NOT_AUTOPILOT_TYPES = frozenset(
     {
@@ -212,6 +218,8 @@ class LinkStatus:
     link_losses: int
     reboots: int
     gnss: dict[str, Any] | None = None  # GnssState.summary of the latest GPS_RAW_INT; None until one
+    #: per requested stream (by message name): msg_id, requested_hz, measured_hz over the last seconds (None at first)
+    streams: dict[str, dict[str, Any]] = field(default_factory=dict)
 
 
 @dataclass
@@ -318,6 +326,8 @@ class MavlinkLink:
         if self.gimballed:
             rates.append((MSG_ID_GIMBAL_DEVICE_ATTITUDE_STATUS, config.gimbal_rate_hz))
         self.rate_plan: dict[int, int] = {mid: int(round(1e6 / hz)) for mid, hz in rates}
+        #: what each requested stream delivers (status ``link.streams``; the watchdog's ``stream_rate_low``)
+        self.stream_rates = StreamRates({mid: (_STREAM_NAMES[mid], float(hz)) for mid, hz in rates})
 
         self._signing = new_signing(signing_key, signing_link_id)
         self._transport: UdpTransport | StreamTransport | None = None
@@ -413,6 +423,7 @@ class MavlinkLink:
         self._inflight = None
         self._rate_queue.clear()
         self.rates_confirmed.clear()
+        self.stream_rates.reset()
         self._ts_outstanding.clear()
 
     def _lost(self, now: float) -> None:
@@ -606,10 +617,12 @@ class MavlinkLink:
             return
         if mtype == "ATTITUDE_QUATERNION" and from_autopilot:
             att = AttitudeQuaternion.from_message(msg)
+            self.stream_rates.count(MSG_ID_ATTITUDE_QUATERNION)
             self._pose.add_attitude(att.time_boot_us, att.q_ned_from_body, att.omega_frd_rps)
             self._boot_seen = (int(self._clock_ns()), att.time_boot_us)
         elif mtype == "GLOBAL_POSITION_INT" and from_autopilot:
             pos = GlobalPositionInt.from_message(msg)
+            self.stream_rates.count(MSG_ID_GLOBAL_POSITION_INT)
             stored = self._pose.add_position(pos.time_boot_us, pos.lat_deg, pos.lon_deg, pos.alt_amsl_m, pos.v_ned_mps)
             home = pos.alt_amsl_m - pos.alt_rel_m
             if stored and math.isfinite(home):  # a dropout's zeros or sentinels are no home
@@ -747,6 +760,7 @@ class MavlinkLink:
                 "only: set mavlink.gimbal_device_id to the camera's",
             )
             return
+        self.stream_rates.count(MSG_ID_GIMBAL_DEVICE_ATTITUDE_STATUS)  # the followed gimbal's, usable or not
         if not gim.attitude_usable:
             self._counters.count("gimbal_failure", f"failure_flags=0x{gim.failure_flags:x}")
             return
@@ -811,6 +825,7 @@ class MavlinkLink:
         result = msg.result
         if result == mavlink2.MAV_RESULT_ACCEPTED:
             self.rates_confirmed.add(inf.msg_id)
+            self.stream_rates.confirmed(inf.msg_id, now)
             self._inflight = None
             log.info("rate of message %d set to %d us", inf.msg_id, inf.interval_us)
         elif result == mavlink2.MAV_RESULT_IN_PROGRESS:
@@ -871,6 +886,7 @@ class MavlinkLink:
 
     def _request_rates(self) -> None:
         self.rates_confirmed.clear()
+        self.stream_rates.reset()
         self.rates_refused.clear()
         self._inflight = None
         self._rate_queue = list(self.rate_plan)
@@ -950,4 +966,10 @@ class MavlinkLink:
             link_losses=self.link_losses,
             reboots=self._pose.reboots,
             gnss=None if self.gnss is None else self.gnss.summary(now),
+            streams={r.name: r.as_dict() for r in self.stream_rates.rates(now)},
         )
+
+    def slow_streams(self) -> list[StreamRate]:
+        """The requested streams arriving at under half their confirmed rate for a few seconds (measured now)."""
+        now = self._now()
+        return self.stream_rates.slow(now, self.stream_rates.rates(now))

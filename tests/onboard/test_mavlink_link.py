@@ -905,3 +905,32 @@ def test_utc_is_not_seeded_while_the_receiver_reports_no_fix(rig):
     for k in range(4, 7):
         rig.ap.send(SystemTime(unix0_us + k * 1_000_000 + 700, k * 1_000_000 + 700))
     assert rig.drive(lambda: rig.link.utc_clock.mapping is not None and rig.link.utc_clock.mapping.n_samples == 3)
+
+
+def test_a_stream_slower_than_its_accepted_rate_is_measured_and_named():
+    """An autopilot that ACCEPTS 100 Hz attitude and sends 20 Hz (ArduPilot caps a stream without a word): the status
+    says both rates, and slow_streams names it once its rate was confirmed a few seconds ago."""
+    from onboard.core.stream_rate import SLOW_PERSIST_S
+    from onboard.io.mavlink_wire import AttitudeQuaternion
+
+    r = Rig(config=dataclasses.replace(UNPINNED, attitude_rate_hz=100.0, position_rate_hz=25.0))
+    try:
+        r.connect()
+        assert r.link.slow_streams() == []
+        t_us = 1_000_000
+        for _ in range(int(SLOW_PERSIST_S) + 3):  # seconds on the link's clock, 20 attitudes in each
+            for _ in range(20):
+                t_us += 50_000
+                before = r.link.messages_rx
+                r.ap.send(AttitudeQuaternion(t_us, (1.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0)))
+                assert r.drive(lambda before=before: r.link.messages_rx > before)
+            r.clock.t_s += 1.0
+            r.ap.heartbeat()
+            r.link.status()  # a status a second: the looks the rate is measured over
+        st = r.link.status().streams["ATTITUDE_QUATERNION"]
+        assert st["msg_id"] == 31 and st["requested_hz"] == 100.0
+        assert st["measured_hz"] == pytest.approx(20.0, abs=1.0)
+        assert r.link.status().streams["GLOBAL_POSITION_INT"]["measured_hz"] == 0.0
+        assert {s.name for s in r.link.slow_streams()} == {"ATTITUDE_QUATERNION", "GLOBAL_POSITION_INT"}
+    finally:
+        r.close()

@@ -285,3 +285,19 @@ def test_the_daemons_own_parts_warn_estimator_restarts_a_stopped_or_lost_recordi
         assert codes == ["record_file_lost"]  # the stop was another run's state here; the health file touched again
         assert "/r/f.mcap" in wd.active[0].message and "goes on in /r/f.1.mcap" in wd.active[0].message
     assert len(_warnings(caplog)) == 4  # each code logged once
+
+
+def test_stream_rate_low_names_the_message_and_both_rates_once(caplog):
+    from onboard.core.stream_rate import StreamRate
+
+    wd = _wd()
+    slow = [StreamRate(31, "ATTITUDE_QUATERNION", 100.0, 20.4, 10.0)]
+    with caplog.at_level(logging.INFO):
+        wd.stream_rates(20.0, slow)
+        wd.stream_rates(21.0, [StreamRate(31, "ATTITUDE_QUATERNION", 100.0, 19.8, 10.0)])
+    (w,) = wd.active
+    assert w.code == "stream_rate_low"
+    assert "ATTITUDE_QUATERNION (#31) arrives at 19.8 Hz, 100 Hz requested" in w.message
+    assert sum("stream_rate_low" in r.getMessage() and r.levelno == logging.WARNING for r in caplog.records) == 1
+    wd.stream_rates(22.0, [])
+    assert wd.active == ()
