@@ -64,7 +64,11 @@ RUN --mount=type=cache,target=/root/.cache/pip \
 # configuration (zenoh router on tcp/127.0.0.1:7447, MAVLink on udpin:127.0.0.1:14540), so the image alone joins
 # a router and a simulator or mavlink-router on the host.  /recordings: where a volume for `record.path` goes
 # (the root file system is read-only; a named volume takes this directory's owner).
-USER 10001:10001
+# The uid alone, no group: with `uid:gid` the runtime gives the process that one group and drops the
+# supplementary ones (dialout, for a serial autopilot); with the uid alone it takes the primary group and
+# the supplementary ones from the image's /etc/passwd and /etc/group. Numeric, so an orchestrator's
+# runAsNonRoot check sees a non-root uid without reading /etc/passwd.
+USER 10001
 
 HEALTHCHECK --interval=5s --timeout=3s --start-period=30s --retries=3 \
     CMD ["python", "-m", "onboard.health"]

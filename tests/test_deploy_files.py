@@ -174,6 +174,10 @@ def test_user_created_with_fixed_uid_and_used(instructions):
 def test_user_can_open_serial_ports(instructions):
     runs = " ".join(i.args for i in instructions if i.keyword == "RUN")
     assert re.search(r"useradd\b[^&;]*--groups\s+dialout", runs), "the user belongs to dialout (serial autopilots)"
+    # `USER uid:gid` gives the process only that group (Docker's USER reference; runc's GetExecUser fills the
+    # supplementary groups from /etc/group only when no group is named): the membership above would be lost.
+    last = [i for i in instructions if i.keyword == "USER"][-1].args.strip()
+    assert ":" not in last, f"USER {last} names a group, which drops the user's supplementary groups (dialout)"
 
 
 def test_entrypoint_and_cmd_are_exec_form(instructions):
