@@ -64,6 +64,8 @@ log line at the default level:
 * ``mavlink_before_lock`` (DEBUG): a message other than HEARTBEAT while no autopilot is followed yet
   (``autopilot_sysid`` unpinned and not settled);
 * ``mavlink_empty_datagram`` (DEBUG): a UDP datagram of no bytes;
+* ``mavlink_signed_without_key`` (INFO, once per link): a signed packet while no signing key is configured; it is
+  used as an unsigned one would be (nothing to verify it with), the log names its sender and the key to set;
 * ``gimbal_attitude_invalid``: a GIMBAL_DEVICE_ATTITUDE_STATUS whose quaternion is not a finite unit one; it
   neither picks the gimbal followed nor counts as a report for the watchdog's ``gimbal_mismatch``.
 
@@ -330,6 +332,7 @@ class MavlinkLink:
         self.stream_rates = StreamRates({mid: (_STREAM_NAMES[mid], float(hz)) for mid, hz in rates})
 
         self._signing = new_signing(signing_key, signing_link_id)
+        self._signed_without_key_seen = False  # mavlink_signed_without_key: counted once per link
         self._transport: UdpTransport | StreamTransport | None = None
         self._dial: TcpDial | None = None  # a tcp: connection under way
         self._stream_parser = new_parser(self._signing)  # serial/TCP: one parser per stream (new on each open)
@@ -598,6 +601,18 @@ class MavlinkLink:
             )
             return
         src_sys, src_comp = msg.get_srcSystem(), msg.get_srcComponent()
+        if not self._signed_without_key_seen and not self._signing.secret_key:
+            header = getattr(msg, "_header", None)  # the unsigned fast path's messages carry none
+            if header is not None and header.incompat_flags & mavlink2.MAVLINK_IFLAG_SIGNED:
+                # without a key the signature cannot be checked, so the frame is taken as an unsigned one would be;
+                # said once: a signing vehicle means a key is missing here, not that anything is wrong with it
+                self._signed_without_key_seen = True
+                self._counters.count(
+                    "mavlink_signed_without_key",
+                    f"{mtype} from {src_sys}/{src_comp} is signed but no key is configured: its signature is not "
+                    "checked; set mavlink.signing_key_file (mavlink signing keys) to verify it",
+                    level=logging.INFO,
+                )
         if mtype == "HEARTBEAT":
             self._on_heartbeat(msg, src_sys, src_comp, now, addr)
             return

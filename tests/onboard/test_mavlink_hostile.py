@@ -353,3 +353,23 @@ def test_a_bad_signing_key_is_one_plain_line_naming_the_field_and_the_file(tmp_p
         with pytest.raises(OnboardConfigError) as err:
             load_config(None, dict(overrides), environ={})
         assert str(err.value) == line
+
+
+def test_signed_packets_without_a_key_are_used_and_counted_once(caplog):
+    """A vehicle that signs while the daemon has no key: its packets are taken (unverified: nothing to check them
+    with), and mavlink_signed_without_key is counted once, at INFO, naming the sender and the key to configure."""
+    r = Rig(config=MavlinkConfig(autopilot_sysid=AP_SYSID))
+    r.ap.conn.setup_signing(KEY, sign_outgoing=True, link_id=1)
+    try:
+        with caplog.at_level(logging.INFO, logger="onboard.core.counters"):
+            r.ap.heartbeat()  # no r.connect(): the signing autopilot refuses our unsigned rate requests
+            assert r.drive(lambda: r.link.state == LINK_CONNECTED)
+            r.ap.attitude(9_000_000, [1, 0, 0, 0])
+            r.ap.attitude(9_010_000, [1, 0, 0, 0])
+            assert r.drive(lambda: r.pose.sizes()["attitude"] == 2)
+        assert r.counters["mavlink_signed_without_key"] == 1
+        (rec,) = [x for x in caplog.records if "mavlink_signed_without_key" in x.getMessage()]
+        assert rec.levelno == logging.INFO
+        assert f"from {AP_SYSID}/1" in rec.getMessage() and "mavlink.signing_key_file" in rec.getMessage()
+    finally:
+        r.close()
