@@ -5,7 +5,8 @@ variables ``IRTRACK_<SECTION>_<FIELD>`` (e.g. ``IRTRACK_MAVLINK_CONNECTION``,
 ``IRTRACK_CAMERA_INTRINSICS_FX_PX``, ``IRTRACK_VEHICLE``; values are parsed as YAML scalars/flow
 collections, so ``IRTRACK_ZENOH_CONNECT='[tcp/10.0.0.2:7447]'`` works) < command-line options.
 ``IRTRACK_HEALTH_FILE`` is an alias of ``IRTRACK_OUTPUT_HEALTH_FILE`` (the container's health check
-reads it too; set with ``IRTRACK_OUTPUT_HEALTH_FILE``, both must agree).  An unknown ``IRTRACK_<SECTION>_...``
+reads it too; set with ``IRTRACK_OUTPUT_HEALTH_FILE``, both must agree, and so must a command-line
+``output.health_file``).  An unknown ``IRTRACK_<SECTION>_...``
 variable of a known section is an error, and so is one a letter or two off a field's variable (a misspelt section);
 the tools' own ``IRTRACK_*`` variables are not ours.
 
@@ -590,7 +591,24 @@ def load_config(
     for p, (value, src) in merged.items():
         _set_path(raw, p, value, src)
         sources[p] = src
-    return build_config(raw, source, sources)
+    config = build_config(raw, source, sources)
+    _check_health_file_agrees(config, os.environ if environ is None else environ, sources)
+    return config
+
+
+def _check_health_file_agrees(config: OnboardConfig, environ: Mapping[str, str], sources: Mapping[str, str]) -> None:
+    """Refuse a command-line ``output.health_file`` other than ``IRTRACK_HEALTH_FILE``: the health probe reads the
+    variable's path, so a daemon touching another file would be called dead by its own container."""
+    (alias,) = (name for name, path in ENV_ALIASES.items() if path == "output.health_file")
+    probe_path = environ.get(alias)
+    if probe_path is None or config.output.health_file == probe_path:
+        return
+    raise OnboardConfigError(
+        sources.get("output.health_file", alias),
+        "output.health_file",
+        f"the value of {alias} ({probe_path!r}: the health probe reads that file)",
+        show(config.output.health_file),
+    )
 
 
 def config_to_dict(cfg) -> Any:

@@ -481,6 +481,23 @@ def test_the_health_file_alias_must_agree_with_its_field_and_not_be_empty():
     assert load_config(None, environ={"IRTRACK_OUTPUT_HEALTH_FILE": ""}).output.health_file is None  # null: none
 
 
+@pytest.mark.parametrize(("value", "shown"), [("/tmp/other", "'/tmp/other'"), (None, "null")])
+def test_a_command_line_health_file_must_agree_with_the_probes_variable(value, shown):
+    # the container's HEALTHCHECK reads IRTRACK_HEALTH_FILE: a daemon touching another file (or none) is called dead
+    env = {"IRTRACK_HEALTH_FILE": "/tmp/irtrack-alive"}
+    override = {"output.health_file": (value, "--set")}
+    with pytest.raises(OnboardConfigError) as err:
+        load_config(None, overrides=override, environ=env)
+    line = str(err.value)
+    assert line.startswith("--set: output.health_file: expected the value of IRTRACK_HEALTH_FILE")
+    assert "'/tmp/irtrack-alive'" in line and line.endswith(f"got {shown}") and "\n" not in line
+    assert err.value.exit_code == 2
+    same = {"output.health_file": ("/tmp/irtrack-alive", "--set")}
+    assert load_config(None, overrides=same, environ=env).output.health_file == "/tmp/irtrack-alive"
+    # without the variable the probe's path is not known here: the option stands
+    assert load_config(None, overrides=override, environ={}).output.health_file == value
+
+
 def test_a_cross_field_error_names_the_override_beside_the_file(tmp_path):
     # the file's heartbeat_timeout_s is refused because of the environment's interval: both are named
     p = write(tmp_path, "mavlink: {heartbeat_timeout_s: 5}")
