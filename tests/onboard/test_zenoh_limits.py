@@ -82,6 +82,45 @@ def test_bad_ports_fail_naming_the_field(section, value, field):
         build_config({section: value})
 
 
+@pytest.mark.parametrize("endpoint", ["tcpp/127.0.0.1:7447", "serial/dev/ttyUSB0", "unixpipe/tmp/p"])
+def test_a_protocol_zenoh_does_not_link_is_refused_naming_the_option(endpoint, capsys):
+    """`--check` said ok and the start exited 2 ('Unicast not supported for tcpp protocol')."""
+    from onboard.app.main import main
+
+    assert main(["--check", "--zenoh-connect", endpoint]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("--zenoh-connect: zenoh.connect[0]: expected a zenoh endpoint whose protocol is one "), err
+    assert err.endswith(f"got {endpoint!r}") and "unixsock-stream" in err, err
+    with pytest.raises(ConfigError, match=r": listen\[0\]: expected a zenoh endpoint whose protocol"):
+        ZenohConfig(listen=(endpoint,))
+
+
+@pytest.mark.integration
+def test_every_accepted_protocol_is_one_the_installed_zenoh_links(tmp_path):
+    """The list follows the wheel's build: a protocol it lacks fails at open with 'Unicast not supported'."""
+    import json
+
+    import zenoh
+
+    from onboard.io.zenoh_session import LINK_PROTOCOLS
+
+    address = {"unixsock-stream": str(tmp_path / "s")}
+
+    def refusal(protocol: str) -> str:
+        conf = zenoh.Config()
+        conf.insert_json5("listen/endpoints", json.dumps([f"{protocol}/{address.get(protocol, '127.0.0.1:0')}"]))
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        try:
+            zenoh.open(conf).close()
+        except Exception as exc:  # tls and quic: no certificate here, a refusal other than the protocol's
+            return str(exc)
+        return ""
+
+    for protocol in LINK_PROTOCOLS:
+        assert "not supported for" not in refusal(protocol), protocol
+    assert "Unicast not supported for tcpp protocol" in refusal("tcpp")  # the control: the message looked for
+
+
 @pytest.mark.subprocess
 def test_check_exits_2_naming_the_port_field(tmp_path):
     cfg = tmp_path / "bad.yaml"
