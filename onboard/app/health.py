@@ -54,6 +54,7 @@ __all__ = [
     "health_file_path",
     "check_liveness",
     "claim_health_file",
+    "health_folder_problem",
     "release_health_file",
     "mark_alive",
     "main",
@@ -201,6 +202,23 @@ def claim_health_file(path: str, field: str = "output.health_file") -> None:
             f"{field}: {path} exists and {foreign}: a liveness file is an empty regular file, and the daemon "
             f"deletes it when it stops; point {field} at a file of its own"
         )
+
+
+def health_folder_problem(path: str) -> str | None:
+    """Why the daemon could not keep a liveness file at ``path`` (``--check``), or None: it creates the file in its
+    folder and deletes it there when it stops, so the folder must exist and take a new file.  One is made there and
+    removed at once: permissions alone do not tell (root, a read-only file system)."""
+    import tempfile
+
+    folder = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(folder):
+        return f"{folder} is not a folder" if os.path.lexists(folder) else f"{folder}: no such folder"
+    try:
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".irtrack-check-"):
+            pass
+    except OSError as exc:
+        return f"{folder}: {exc.strerror or exc}"
+    return None
 
 
 def release_health_file(path: str) -> None:

@@ -11,7 +11,8 @@ Configuration: built-in defaults < ``--config`` file < ``IRTRACK_<SECTION>_<FIEL
 variables < command-line options (each option overrides its config field; ``--zenoh-connect`` /
 ``--zenoh-listen`` given once or more replace the file's list).  ``--check`` validates and exits
 0: the values, and what the start would refuse on disk (the zenoh config file, a liveness path that is a
-folder or a file with content); ``--print-config`` prints the effective configuration as YAML and exits.
+folder or a file with content, or in a folder where no file can be made), its ``ok`` line naming what it checked
+(no link is opened); ``--print-config`` prints the effective configuration as YAML and exits.
 
 Exit codes: 0 clean shutdown (SIGTERM / SIGINT / SIGHUP; Ctrl-C too, even while starting, without a
 traceback) or successful ``--check``; 2 invalid configuration or options, or a zenoh session that cannot
@@ -220,14 +221,15 @@ def raise_open_files_limit() -> int | None:
         return None
 
 
-def _check_problem(config) -> str | None:
+def _check_problem(config, checked: list[str]) -> str | None:
     """For ``--check``, what the start would refuse that the configuration's values alone cannot tell, in one line
     (None: nothing): the zenoh config file, read as the session would read it (no session is opened); a recording
     path where no file can be made; a live view host that does not resolve; the liveness path (a folder, a file
-    with content: the start's own check)."""
+    with content: the start's own check) and its folder, where the daemon makes and deletes the file.  Appends the
+    name of each check made to ``checked``, for the ``ok`` line."""
     import socket
 
-    from onboard.app.health import claim_health_file
+    from onboard.app.health import claim_health_file, health_folder_problem
     from onboard.core.errors import ConfigError
     from onboard.io.record_files import record_path_problem
     from onboard.io.zenoh_session import DAEMON_CONFIG_FILE_FIELD, ZenohConfigError, build_config
@@ -236,20 +238,28 @@ def _check_problem(config) -> str | None:
         build_config(config.zenoh, max_payload_bytes=config.input.max_frame_bytes, file_option=DAEMON_CONFIG_FILE_FIELD)
     except ZenohConfigError as exc:
         return str(exc)
+    checked.append("zenoh config")
     if config.record.path:
         problem = record_path_problem(config.record.path)
         if problem is not None:
             return f"record.path: cannot write {problem}"
+        checked.append("record.path writable")
     if config.live_view.port is not None:
         try:
             socket.getaddrinfo(config.live_view.host, config.live_view.port, type=socket.SOCK_STREAM)
         except OSError as exc:
             return f"live_view.host: cannot resolve {config.live_view.host!r}: {exc.strerror or exc}"
+        checked.append("live_view.host resolves")
     if config.output.health_file:
         try:
             claim_health_file(config.output.health_file)
         except ConfigError as exc:
             return str(exc)
+        problem = health_folder_problem(config.output.health_file)
+        if problem is not None:
+            # the daemon would run, its liveness file never made: the container's health check calls it dead
+            return f"output.health_file: cannot make {config.output.health_file}: {problem}"
+        checked.append("output.health_file writable")
     return None
 
 
@@ -270,11 +280,13 @@ def _serve(args: argparse.Namespace, stop: _StopSignals) -> int:
         sys.stdout.write(yaml.safe_dump(config_to_dict(config), sort_keys=False))
         return EXIT_OK
     if args.check:
-        problem = _check_problem(config)
+        checked = ["every field"]  # load_config: values, ports, endpoints
+        problem = _check_problem(config, checked)
         if problem is not None:
             print(f"{args.config or '(defaults)'}: {problem}", file=sys.stderr)
             return EXIT_CONFIG
-        print(f"{args.config or '(defaults)'}: ok")
+        # what was checked, and that no link was tried: an ok says nothing of a peer, an autopilot or a camera
+        print(f"{args.config or '(defaults)'}: ok ({', '.join(checked)}; no link opened)")
         return EXIT_OK
 
     setup_logging(config.logging.level, config.logging.format)

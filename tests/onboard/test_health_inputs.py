@@ -62,3 +62,50 @@ def test_check_refuses_a_liveness_path_the_daemon_would_refuse_at_start(target, 
     err = capsys.readouterr().err
     assert err == f"(defaults): {start.value}\n"
     assert main(["--set", f"output.health_file={tmp_path / 'alive'}", "--check"]) == 0
+
+
+@pytest.mark.parametrize("where", ["missing", "read_only_file_system"])
+def test_check_refuses_a_liveness_file_in_a_folder_where_none_can_be_made(where, tmp_path, monkeypatch, capsys):
+    """A folder the daemon cannot create its file in (a read-only root: /var/irtrack-alive) passed --check; the daemon
+    then ran with no liveness file and its container's health check called it dead."""
+    import errno
+    import tempfile
+
+    from onboard.app.main import main
+
+    folder = tmp_path / ("gone" if where == "missing" else "ro")
+    if where == "read_only_file_system":  # what the image's user meets on the read-only root (root too: no skip)
+        folder.mkdir()
+        real = tempfile.NamedTemporaryFile
+
+        def refused(*args, **kwargs):
+            if os.fspath(kwargs.get("dir", "")) == str(folder):
+                raise OSError(errno.EROFS, os.strerror(errno.EROFS))
+            return real(*args, **kwargs)
+
+        monkeypatch.setattr(tempfile, "NamedTemporaryFile", refused)
+    path = folder / "alive"
+    assert main(["--set", f"output.health_file={path}", "--check"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"(defaults): output.health_file: cannot make {path}: {folder}: ") and err.count("\n") == 1
+    expected = {"missing": "no such folder", "read_only_file_system": "Read-only file system"}
+    assert expected[where] in err, err
+    assert main(["--set", f"output.health_file={tmp_path / 'alive'}", "--check"]) == 0
+    assert not [p for p in tmp_path.rglob(".irtrack-check-*")]  # the check's own file is gone
+
+
+def test_the_check_says_what_it_checked(tmp_path, capsys):
+    """'ok' alone did not say what was checked, nor that no link was tried."""
+    from onboard.app.main import main
+
+    alive = tmp_path / "alive"
+    assert main(["--set", f"output.health_file={alive}", "--check"]) == 0
+    out = capsys.readouterr().out
+    assert out == "(defaults): ok (every field, zenoh config, output.health_file writable; no link opened)\n", out
+    record = tmp_path / "r.mcap"
+    assert main(["--set", "output.health_file=null", "--record", str(record), "--live-view", "8765", "--check"]) == 0
+    out = capsys.readouterr().out
+    assert (
+        out
+        == "(defaults): ok (every field, zenoh config, record.path writable, live_view.host resolves; no link opened)\n"
+    )
