@@ -580,11 +580,15 @@ def load_config(
         raise OnboardConfigError("(empty path)", "(file)", "a YAML file path", repr(source))
     if path is not None:
         data = read_yaml(source, OnboardConfigError)
-        if data is not None and not isinstance(data, Mapping):
+        if data is None:
+            # an empty or comment-only file is most likely the wrong one (a truncated copy, a placeholder mounted
+            # over the real one): running on the built-in defaults would hide it; the defaults are --config left out
+            raise OnboardConfigError(source, "(document)", "a mapping of config sections", "an empty document")
+        if not isinstance(data, Mapping):
             raise OnboardConfigError(
                 source, "(document)", "a mapping of sections (vehicle, mavlink, zenoh, ...)", show(data)
             )
-        raw = dict(data or {})
+        raw = dict(data)
     sources: dict[str, str] = {}
     merged = dict(env_overrides(environ))
     merged.update(overrides or {})

@@ -142,11 +142,22 @@ estimator: {attitude_white_sigma_deg: 0.5}
     assert c.estimator.noise_model().attitude_white_sigma_rad == pytest.approx(math.radians(0.5), abs=ATOL_DEG_AS_RAD)
 
 
-def test_empty_file_and_empty_sections_mean_defaults(tmp_path):
-    assert config_to_dict(load_config(write(tmp_path, ""), environ={})) == config_to_dict(OnboardConfig())
+@pytest.mark.parametrize("text", ["", "# nothing but a comment\n", "---\n", "~\n"])
+def test_an_empty_config_file_is_refused_not_run_on_the_defaults(tmp_path, text):
+    """An empty or comment-only --config file ran on the built-in defaults and --check said ok."""
+    path = write(tmp_path, text)
+    with pytest.raises(OnboardConfigError) as err:
+        load_config(path, environ={})
+    assert str(err.value) == f"{path}: (document): expected a mapping of config sections, got an empty document"
+    assert err.value.exit_code == 2
+
+
+def test_empty_sections_mean_defaults(tmp_path):
     assert config_to_dict(load_config(write(tmp_path, "mavlink:\nimaging:\n"), environ={})) == config_to_dict(
         OnboardConfig()
     )
+    assert config_to_dict(load_config(write(tmp_path, "{}\n"), environ={})) == config_to_dict(OnboardConfig())
+    assert config_to_dict(load_config(None, environ={})) == config_to_dict(OnboardConfig())  # no file: the defaults
 
 
 # --------------------------------------------------------------------------- errors
