@@ -394,3 +394,35 @@ def test_nothing_received_exits_1_so_a_script_sees_a_silent_daemon(capsys):
     assert code == EXIT_NO_TRACK, out
     assert out.splitlines()[-1].startswith("summary: 0 tracks in ")
     assert out.splitlines()[-1].endswith("nothing arrived: is the daemon running, and zenoh connected to it?")
+
+
+# a Ctrl-C during the entry point's imports: KeyboardInterrupt raised inside one of them (zenoh's, which comes late,
+# so numpy and the project's modules are half imported by then), as the signal's handler raises it there
+_INTERRUPTED_IMPORT = """
+import runpy, sys
+class CtrlC:
+    def find_spec(self, name, path=None, target=None):
+        if name == "zenoh":
+            raise KeyboardInterrupt
+        return None
+sys.meta_path.insert(0, CtrlC())
+sys.argv = ["onboard.watch", *sys.argv[1:]]
+runpy.run_module("onboard.watch", run_name="__main__", alter_sys=True)
+"""
+
+
+@pytest.mark.subprocess
+@pytest.mark.parametrize("json_output", [False, True])
+def test_ctrl_c_during_the_imports_is_the_interrupted_line_and_130(json_output):
+    """A Ctrl-C in the watcher's first second printed a traceback and ended by SIGINT (status -2), not 130."""
+    from onboard.watch import EXIT_INTERRUPTED, INTERRUPTED_STARTING
+
+    extra = ["--json"] if json_output else []
+    r = subprocess.run(
+        [sys.executable, "-c", _INTERRUPTED_IMPORT, "--seconds", "1", *extra],
+        cwd=REPO, capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert r.returncode == EXIT_INTERRUPTED, r.stderr[-2000:]
+    line, other = (r.stderr, r.stdout) if json_output else (r.stdout, r.stderr)
+    assert line == INTERRUPTED_STARTING + "\n" and other == "", (r.stdout, r.stderr)
+    assert INTERRUPTED_STARTING == interrupted_line(WatchCounts())  # the same line as a Ctrl-C later, nothing received
