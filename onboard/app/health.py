@@ -73,6 +73,7 @@ REASON_MISSING = "missing"
 REASON_STALE = "stale"
 REASON_FUTURE = "future"
 REASON_FOREIGN = "foreign"
+REASON_UNREADABLE = "unreadable"
 
 
 @dataclass(frozen=True)
@@ -82,16 +83,20 @@ class Liveness:
     alive
         True when the file was touched within ``max_age_s``.
     reason
-        ``"ok"``, ``"missing"`` (no file / unreadable), ``"stale"`` (older than ``max_age_s``),
-        ``"future"`` (mtime more than :data:`FUTURE_TOLERANCE_S` ahead: wall clock stepped back) or
-        ``"foreign"`` (the path holds something the daemon does not write: a folder, a file with content).
+        ``"ok"``, ``"missing"`` (no file), ``"stale"`` (older than ``max_age_s``),
+        ``"future"`` (mtime more than :data:`FUTURE_TOLERANCE_S` ahead: wall clock stepped back),
+        ``"foreign"`` (the path holds something the daemon does not write: a folder, a file with content) or
+        ``"unreadable"`` (the path cannot be looked at: a folder on it this user may not search, ...).
     age_s
-        ``now - mtime`` in seconds (negative when the mtime is ahead), None when missing or foreign.
+        ``now - mtime`` in seconds (negative when the mtime is ahead), None when missing, foreign or unreadable.
     max_age_s
         The limit used.
     foreign
         What the path holds instead of a liveness file (``"is a folder"``, ``"holds 10 bytes"``), exactly
         when ``reason`` is ``"foreign"``; else None.
+    error
+        Why the path cannot be looked at (the system's words: ``"Permission denied"``), exactly when ``reason`` is
+        ``"unreadable"``; else None.
     """
 
     alive: bool
@@ -99,16 +104,20 @@ class Liveness:
     age_s: float | None
     max_age_s: float
     foreign: str | None = None
+    error: str | None = None
 
     def __post_init__(self) -> None:
-        if self.reason not in (REASON_OK, REASON_MISSING, REASON_STALE, REASON_FUTURE, REASON_FOREIGN):
+        reasons = (REASON_OK, REASON_MISSING, REASON_STALE, REASON_FUTURE, REASON_FOREIGN, REASON_UNREADABLE)
+        if self.reason not in reasons:
             raise ValueError(f"Liveness.reason: unknown reason {self.reason!r}")
         if self.alive != (self.reason == REASON_OK):
             raise ValueError(f"Liveness.alive={self.alive} contradicts reason {self.reason!r}")
-        if (self.age_s is None) != (self.reason in (REASON_MISSING, REASON_FOREIGN)):
-            raise ValueError("Liveness.age_s must be None exactly when reason is 'missing' or 'foreign'")
+        if (self.age_s is None) != (self.reason in (REASON_MISSING, REASON_FOREIGN, REASON_UNREADABLE)):
+            raise ValueError("Liveness.age_s must be None exactly when reason is 'missing', 'foreign' or 'unreadable'")
         if (self.foreign is None) == (self.reason == REASON_FOREIGN):
             raise ValueError("Liveness.foreign must say what the path holds exactly when reason is 'foreign'")
+        if (self.error is None) == (self.reason == REASON_UNREADABLE):
+            raise ValueError("Liveness.error must say why the path cannot be read exactly when reason is 'unreadable'")
 
     def describe(self, path: str) -> str:
         """One line for the health log."""
@@ -117,6 +126,8 @@ class Liveness:
                 f"NOT alive: {path} {self.foreign}: the pipeline's liveness file is an empty regular file, so "
                 f"--file or ${HEALTH_FILE_ENV} names something else"
             )
+        if self.error is not None:
+            return f"NOT alive: cannot look at {path}: {self.error}"
         if self.age_s is None:  # exactly when the file is missing (__post_init__)
             return f"NOT alive: {path} does not exist (the pipeline has not started or cannot write it)"
         if self.reason == REASON_OK:
@@ -178,8 +189,10 @@ def check_liveness(path: str, max_age_s: float = DEFAULT_MAX_AGE_S, now_s: float
     max_age_s = _check_max_age(max_age_s)
     try:
         st = os.stat(path)
-    except OSError:
+    except FileNotFoundError:
         return judge_liveness(None, 0.0, max_age_s)
+    except OSError as exc:  # there may well be a fresh file there: 'does not exist' would send the reader astray
+        return Liveness(False, REASON_UNREADABLE, None, max_age_s, error=exc.strerror or str(exc))
     foreign = _not_a_liveness_file(st)
     if foreign is not None:
         return Liveness(False, REASON_FOREIGN, None, max_age_s, foreign)

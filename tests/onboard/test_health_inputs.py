@@ -3,6 +3,7 @@ folder, a device, a file with content (the daemon's own file is an empty regular
 
 from __future__ import annotations
 
+import errno
 import os
 import time
 
@@ -68,7 +69,6 @@ def test_check_refuses_a_liveness_path_the_daemon_would_refuse_at_start(target, 
 def test_check_refuses_a_liveness_file_in_a_folder_where_none_can_be_made(where, tmp_path, monkeypatch, capsys):
     """A folder the daemon cannot create its file in (a read-only root: /var/irtrack-alive) passed --check; the daemon
     then ran with no liveness file and its container's health check called it dead."""
-    import errno
     import tempfile
 
     from onboard.app.main import main
@@ -109,3 +109,30 @@ def test_the_check_says_what_it_checked(tmp_path, capsys):
         out
         == "(defaults): ok (every field, zenoh config, record.path writable, live_view.host resolves; no link opened)\n"
     )
+
+
+@pytest.mark.parametrize("case", ["under_a_file", "symlink_loop"])
+def test_the_probe_says_why_a_path_cannot_be_looked_at_not_that_it_is_missing(case, tmp_path, with_content, capsys):
+    """A path the probe may not stat (a folder it may not search, ...) was reported as 'does not exist'. Root may
+    search any folder, so the errors here are ones root meets too; the words are the system's either way."""
+    if case == "under_a_file":
+        path, words = with_content / "alive", os.strerror(errno.ENOTDIR)
+    else:
+        loop = tmp_path / "loop"
+        loop.symlink_to(loop)
+        path, words = loop, os.strerror(errno.ELOOP)
+    verdict = health.check_liveness(str(path))
+    assert (verdict.alive, verdict.reason, verdict.age_s, verdict.error) == (False, "unreadable", None, words)
+    assert health.main(["--file", str(path)]) == health.EXIT_UNHEALTHY
+    assert capsys.readouterr().out == f"NOT alive: cannot look at {path}: {words}\n"
+    missing = health.check_liveness(str(tmp_path / "absent"))  # the control: a path that is not there is missing
+    assert (missing.reason, missing.error) == ("missing", None)
+
+
+def test_an_unreadable_verdict_says_why_and_nothing_else():
+    with pytest.raises(ValueError, match="error"):
+        health.Liveness(False, "unreadable", None, 5.0)
+    with pytest.raises(ValueError, match="error"):
+        health.Liveness(False, "missing", None, 5.0, error="Permission denied")
+    with pytest.raises(ValueError, match="age_s"):
+        health.Liveness(False, "unreadable", 1.0, 5.0, error="Permission denied")
