@@ -601,6 +601,8 @@ def test_router_file_keys():
     assert get("scouting/multicast/enabled") is False
     assert get("scouting/gossip/enabled") is True
     assert get("adminspace/enabled") is False
+    # zenohd enables the admin space whatever the file says: these permissions are what keeps remote sessions out
+    assert get("adminspace/permissions") == {"read": False, "write": False}
 
 
 def _await_delivery(pub_session, key: str, sub_session, payload: bytes) -> bool:
