@@ -187,8 +187,43 @@ def _cov(c, what: str) -> np.ndarray:
         raise InputError(f"Track.{what} must be a finite 3 x 3 matrix, got shape {a.shape}")
     if min(values[0], values[4], values[8]) < 0:
         raise InputError(f"Track.{what} has a negative variance on its diagonal: {np.diag(a).tolist()}")
+    if not _positive_semidefinite(values):
+        raise InputError(
+            f"Track.{what} must be symmetric positive semi-definite (within {COV_RTOL:g} of its largest entry), "
+            f"got {a.tolist()}"
+        )
     a.setflags(write=False)
     return a
+
+
+#: how far a covariance may be from symmetric, and an eigenvalue below 0, relative to its largest entry: round-off
+#: of the estimators' own arithmetic is about 1e-16 of it, and an EKF's accumulated round-off stays many decades
+#: below this; a covariance beyond it claims a confidence no distribution has
+COV_RTOL = 1e-6
+
+
+def _positive_semidefinite(v: list[float]) -> bool:
+    """The row-major 3 x 3 ``v`` (finite floats) is symmetric and has no eigenvalue below ``-COV_RTOL`` times its
+    largest entry: a Cholesky factorisation of the matrix shifted by that much, in floats (nine numbers: numpy's
+    per-call costs would be most of the check, every frame)."""
+    s = max(map(abs, v))
+    if s == 0.0:
+        return True
+    tol = COV_RTOL * s
+    a00, a01, a02, a10, a11, a12, a20, a21, a22 = v
+    if abs(a01 - a10) > tol or abs(a02 - a20) > tol or abs(a12 - a21) > tol:
+        return False
+    # the matrix plus tol * I is positive definite exactly when no eigenvalue is below -tol
+    d0 = a00 + tol
+    if not d0 > 0.0:
+        return False
+    l10, l20 = a01 / d0, a02 / d0
+    d1 = a11 + tol - l10 * a01
+    if not d1 > 0.0:
+        return False
+    l21 = (a12 - l20 * a01) / d1
+    d2 = a22 + tol - l20 * a02 - l21 * l21 * d1
+    return d2 > 0.0
 
 
 def _sigmas3(cov) -> tuple[float, float, float]:
