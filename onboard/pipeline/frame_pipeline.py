@@ -68,8 +68,10 @@ in the shared :class:`~onboard.core.counters.RejectCounter`: ``frame_short``, ``
 ``frame_out_of_order``, ``frame_time_ahead``, ``frame_time_behind``, ``frame_image``.  Notable accepted
 events: ``frame_time_reset``, ``frame_sequence_reset``, ``frame_stream_restart``, ``frame_encoding_changed`` (INFO: mono8
 and mono16 alternating, a camera's mode or a second publisher), ``estimator_pose_reset``
-(step 4).  Estimator problems never refuse a frame: they are counted as ``estimator_input`` /
-``estimator_error`` and the frame gets no 3-D.
+(step 4).  Estimator problems never refuse a frame: they are counted as ``estimator_input`` (it refused its
+input), ``estimator_error`` (it raised) or ``estimator_output_invalid`` (its answer is not an estimate of the
+protocol, :mod:`onboard.pipeline.plugins`: a field missing or of the wrong type or shape, a position, velocity,
+covariance or range not finite, a covariance not symmetric positive semi-definite) and the frame gets no 3-D.
 """
 
 from __future__ import annotations
@@ -96,7 +98,15 @@ from onboard.pipeline.admission import FrameAdmission
 from onboard.pipeline.coast import coast_estimate
 from onboard.pipeline.restamp import StampPoseHistory
 
-__all__ = ["FrameRejected", "PoseSource", "Estimator", "FramePipeline", "make_estimator", "make_tracker"]
+__all__ = [
+    "FrameRejected",
+    "PoseSource",
+    "Estimator",
+    "FramePipeline",
+    "estimate_problem",
+    "make_estimator",
+    "make_tracker",
+]
 
 log = logging.getLogger(__name__)
 
@@ -170,16 +180,66 @@ def _track_key(pose: PoseAt) -> tuple[int, int]:
     return int(pose.epoch), int(getattr(pose, "discontinuities", 0))
 
 
-def _finite_estimate(est: Any) -> bool:
-    try:  # the arrays' own all(): np.all's Python wrapper costs more than the check, twice a frame
-        return bool(
-            np.isfinite(est.p_ned_m).all()
-            and np.isfinite(est.v_ned_mps).all()
-            and np.isfinite(est.cov_p_ned_m2).all()
-            and math.isfinite(float(est.range_m))
-        )
-    except (AttributeError, TypeError, ValueError):
-        return False
+_REAL = (int, float, np.integer, np.floating)
+
+
+def _real(x: Any) -> bool:
+    return isinstance(x, _REAL) and not isinstance(x, (bool, np.bool_))
+
+
+def _shape(x: Any) -> tuple[int, ...] | None:
+    shape = getattr(x, "shape", None)  # an array's own: np.shape's wrapper costs more, three times a frame
+    if shape is not None or isinstance(x, (str, bytes)):
+        return shape
+    try:
+        return np.shape(x)
+    except ValueError:  # a ragged sequence
+        return None
+
+
+def estimate_problem(est: Any) -> str | None:
+    """What is wrong with an estimator's answer (the protocol's fields, :mod:`onboard.pipeline.plugins`), None when
+    nothing: everything the pipeline reads of it, checked once before anything reads it.  A position, velocity,
+    position covariance or range that is not finite is wrong too; the velocity covariance is optional (a
+    non-finite one goes out as null), its shape is not; an absent range or ``None`` makes no position."""
+    try:
+        t_s = est.t_s
+        if not (_real(t_s) and math.isfinite(t_s)):
+            return f"t_s must be a finite number, got {t_s!r}"
+        observable = est.observable
+        if not isinstance(observable, (bool, np.bool_)):
+            return f"observable must be a bool, got {observable!r}"
+        frames = est.window_frames
+        if (
+            isinstance(frames, (bool, np.bool_))
+            or not isinstance(frames, (int, np.integer))
+            or not 0 <= frames <= 2**31
+        ):
+            return f"window_frames must be an integer in [0, 2**31], got {frames!r}"
+        for name, shape in (("p_ned_m", (3,)), ("v_ned_mps", (3,)), ("cov_p_ned_m2", (3, 3))):
+            value = getattr(est, name)
+            if _shape(value) != shape:
+                return f"{name} must have the shape {shape}, got {_shape(value) or type(value).__name__}"
+            if not np.isfinite(value).all():
+                return f"{name} is not finite"
+        cov_v = getattr(est, "cov_v_ned_m2ps2", None)
+        if cov_v is not None and _shape(cov_v) != (3, 3):
+            return f"cov_v_ned_m2ps2 must be None or have the shape (3, 3), got {_shape(cov_v)}"
+        range_m = getattr(est, "range_m", None)
+        if range_m is not None and not (_real(range_m) and math.isfinite(range_m) and range_m >= 0):
+            return f"range_m must be None or a finite number >= 0, got {range_m!r}"
+        for name in ("range_sigma_ratio", "residual_rms_norm"):  # NaN: unknown
+            value = getattr(est, name, None)
+            if value is not None and not (_real(value) and not value < 0):
+                return f"{name} must be None or a number >= 0, got {value!r}"
+        model = getattr(est, "model", None)
+        if model is not None and not isinstance(model, str):
+            return f"model must be None or a string, got {model!r}"
+    except AttributeError as exc:
+        return f"no {exc.name or 'field'} (a {type(est).__name__})"
+    except TypeError as exc:  # an array of objects: no finiteness to test
+        return f"{type(exc).__name__}: {exc}"
+    return None
 
 
 #: the configuration sections the pipeline reads (of the daemon's ``onboard.app.config.OnboardConfig``: the
@@ -555,25 +615,38 @@ class FramePipeline:
         t_s = t_us / US_PER_S
         try:
             if pose is not None and getattr(pose, "sigma_extrapolation_m", 0.0) > self._camera_sigma_m:
-                return self._coast(upd, pose, t_s)
+                return self._checked(self._coast(upd, pose, t_s))
             if upd.measurement_valid and pose is not None:
                 self._est_has_data = True
                 if self.time_offset is not None:
                     self._window_rows.append((t_us, (upd.u_px, upd.v_px)))
                     while self._window_rows[0][0] < t_us - self._window_span_us:
                         self._window_rows.popleft()
-                est = self.estimator.add(
-                    t_s, (upd.u_px, upd.v_px), self.intrinsics, pose.p_cam_ned_m, pose.q_ned_from_cam
+                est = self._checked(
+                    self.estimator.add(
+                        t_s, (upd.u_px, upd.v_px), self.intrinsics, pose.p_cam_ned_m, pose.q_ned_from_cam
+                    )
                 )
                 self._window_est = est if est is not None else self._window_est
                 return est
             if not self._est_has_data:
                 return None
-            return self.estimator.predict(t_s, None if pose is None else pose.p_cam_ned_m)
+            return self._checked(self.estimator.predict(t_s, None if pose is None else pose.p_cam_ned_m))
         except InputError as exc:
             self.counter.count("estimator_input", str(exc))
         except Exception as exc:  # noqa: BLE001 - the estimator must never stop the frame loop
             self.counter.count("estimator_error", f"{type(exc).__name__}: {exc}")
+        return None
+
+    def _checked(self, est):
+        """``est``, or None (counted ``estimator_output_invalid``) when it is not an estimate the pipeline can read:
+        every later step reads it unguarded."""
+        if est is None:
+            return None
+        problem = estimate_problem(est)
+        if problem is None:
+            return est
+        self.counter.count("estimator_output_invalid", f"{type(self.estimator).__name__}: {problem}")
         return None
 
     def _follow_pose_track(self, pose: PoseAt | None) -> None:
@@ -670,6 +743,7 @@ class FramePipeline:
             return False
         kept = {int(t_us[i]) for i in np.flatnonzero(ok)}
         self._window_rows = collections.deque(r for r in self._window_rows if r[0] in kept)
+        est = self._checked(est)
         self._window_est = est if est is not None else self._window_est
         self._window_comp_ms = comp_ms
         self.window_restamps += 1
@@ -751,7 +825,7 @@ class FramePipeline:
         theirs = getattr(est, "residual_rms_norm", math.nan)
         if theirs is not None and math.isfinite(theirs):
             return float(theirs)
-        if upd.measurement_valid and pose is not None and _finite_estimate(est):
+        if upd.measurement_valid and pose is not None:
             z2 = self._standardised_residual_sq(upd, pose, est)
             if z2 is not None:
                 self._residuals.append((t_us, z2))
@@ -831,7 +905,8 @@ class FramePipeline:
             residual_rms_norm=self._residual_rms_norm(upd, pose, est, frame.time_boot_us),
         )
         show = est.observable or self.config.output.unobservable_positions
-        if not (show and origin is not None and _finite_estimate(est)):
+        # finite: checked when the estimator answered (_checked); without a range, no position
+        if not (show and origin is not None and getattr(est, "range_m", None) is not None):
             return Track(**base)
         try:
             p = np.asarray(est.p_ned_m, dtype=float)

@@ -38,8 +38,10 @@ An *estimate* is any object with the attributes of :class:`EstimateFields` (the 
 :class:`onboard.estimation.sliding.TrackEstimate`): ``t_s``, ``p_ned_m`` (3,), ``v_ned_mps`` (3,),
 ``cov_p_ned_m2`` (3, 3), ``cov_v_ned_m2ps2`` (3, 3), ``observable`` (bool: the range is known well
 enough to publish), ``range_m``, ``range_sigma_ratio``, ``window_frames``, ``model`` (str).  An
-estimate with a non-finite position, velocity, covariance or range is not published.  ``None`` = no
-estimate yet.  An estimator that raises is logged and the frame goes on without 3-D.
+estimate with a field missing or of another type or shape, a non-finite position, velocity, position covariance
+or range, or a covariance that is not symmetric positive semi-definite is not published (counted
+``estimator_output_invalid``).  ``None`` = no estimate yet.  An estimator that raises is logged and the frame goes
+on without 3-D.
 
 :class:`Tracker` -- ``update(pixels) -> TrackUpdate`` (:class:`onboard.imaging.TrackUpdate`): one IR
 frame (H, W) uint8/uint16 in, the target's centre, box and track state out.  Only a ``TrackUpdate`` with

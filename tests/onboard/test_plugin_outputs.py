@@ -4,6 +4,8 @@ published, never the end of the frame loop (a built-in algorithm with a bug take
 from __future__ import annotations
 
 import dataclasses
+import logging
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -66,3 +68,78 @@ def test_an_estimate_with_an_impossible_covariance_publishes_no_position(cov):
     tracks = rig.run(FRAMES)
     assert all(tr.p_ned_m is None for tr in tracks)
     assert rig.counter["estimator_output_invalid"] == FRAMES - 9
+
+
+# --------------------------------------------------------------------------- estimates of the wrong type or shape
+
+
+def _fields(est, **kw) -> SimpleNamespace:
+    """The estimate as another estimator's object would carry it, with ``kw`` changed (``_ABSENT``: the field absent)."""
+    d = {k: getattr(est, k) for k in PROTOCOL_FIELDS}
+    d.update(kw)
+    return SimpleNamespace(**{k: v for k, v in d.items() if v is not _ABSENT})
+
+
+_ABSENT = object()
+PROTOCOL_FIELDS = (
+    "t_s",
+    "p_ned_m",
+    "v_ned_mps",
+    "cov_p_ned_m2",
+    "cov_v_ned_m2ps2",
+    "observable",
+    "range_m",
+    "range_sigma_ratio",
+    "window_frames",
+    "model",
+)
+
+
+@pytest.mark.parametrize(
+    "spoil, field",
+    [
+        (lambda est: [1.0, 2.0, 3.0], "no t_s (a list)"),
+        (lambda est: "estimate", "no t_s (a str)"),
+        (lambda est: _fields(est, p_ned_m=np.array([1.0, 2.0])), "p_ned_m must have the shape (3,)"),
+        (lambda est: _fields(est, cov_p_ned_m2=np.eye(2)), "cov_p_ned_m2 must have the shape (3, 3)"),
+        (lambda est: _fields(est, cov_v_ned_m2ps2=np.eye(2)), "cov_v_ned_m2ps2 must be None or have the shape"),
+        (lambda est: _fields(est, observable=_ABSENT), "no observable"),
+        (lambda est: _fields(est, observable="yes"), "observable must be a bool"),
+        (lambda est: _fields(est, window_frames=float("nan")), "window_frames must be an integer"),
+        (lambda est: _fields(est, window_frames=-1), "window_frames must be an integer"),
+        (lambda est: _fields(est, range_m="far"), "range_m must be None or a finite number"),
+        (lambda est: _fields(est, range_m=np.inf), "range_m must be None or a finite number"),
+        (lambda est: _fields(est, residual_rms_norm="low"), "residual_rms_norm must be None or a number"),
+        (lambda est: _fields(est, residual_rms_norm=-1.0), "residual_rms_norm must be None or a number"),
+        (lambda est: _fields(est, model=3), "model must be None or a string"),
+        (lambda est: _fields(est, p_ned_m=np.full(3, np.nan)), "p_ned_m is not finite"),
+        (lambda est: _fields(est, v_ned_mps=np.array([np.inf, 0.0, 0.0])), "v_ned_mps is not finite"),
+        (lambda est: _fields(est, cov_p_ned_m2=np.diag([np.inf, 1.0, 1.0])), "cov_p_ned_m2 is not finite"),
+        (lambda est: _fields(est, p_ned_m=np.array(["a", "b", "c"], dtype=object)), "TypeError"),
+    ],
+)
+def test_an_estimate_the_pipeline_cannot_read_is_refused_and_counted_naming_the_estimator(spoil, field, caplog):
+    rig = _spoilt_rig(spoil)
+    with caplog.at_level(logging.WARNING):
+        tracks = rig.run(FRAMES)  # the frame loop goes on
+    assert all(tr.p_ned_m is None and tr.window_frames == 0 and not tr.observable for tr in tracks)
+    assert rig.counter["estimator_output_invalid"] == FRAMES - 9
+    assert rig.counter["estimator_error"] == 0
+    lines = [r.getMessage() for r in caplog.records if "estimator_output_invalid" in r.getMessage()]
+    assert len(lines) == 1 and "SpoiltEstimator" in lines[0] and field in lines[0]
+
+
+def test_an_estimate_of_lists_and_numpy_scalars_is_read_as_one_of_arrays():
+    rig = _spoilt_rig(
+        lambda est: _fields(
+            est,
+            p_ned_m=est.p_ned_m.tolist(),
+            cov_p_ned_m2=est.cov_p_ned_m2.tolist(),
+            observable=np.bool_(True),
+            window_frames=np.int64(est.window_frames),
+            range_m=np.float64(est.range_m),
+        )
+    )
+    tracks = rig.run(FRAMES)
+    assert all(tr.p_ned_m is not None for tr in tracks[9:])
+    assert rig.counter["estimator_output_invalid"] == 0
