@@ -12,8 +12,8 @@ ground station can join at any second; grey levels as limited-range luma, said s
 :class:`onboard.io.rtp_h264.RtpH264Packetizer`: 90 kHz timestamps from each frame's capture time, the
 marker bit on an access unit's last packet) and :class:`H264TsEncoder` (MPEG-TS muxing into any
 ``write``-able, its 90 kHz time stamps from the capture times too).  Both streams' stamps always move forward:
-where the capture clock steps back (a camera or autopilot restart) or far forward, they go on one frame period
-after the last (:class:`_StreamClock`; counted in the status's ``video.clock_resets``).
+where the capture clock steps back (a camera or autopilot restart), they go on one frame period after the last
+(:class:`_StreamClock`; counted in the status's ``video.clock_resets``); a gap forward keeps its time.
 
 Adapter: :class:`VideoStreamer` owns a thread and a UDP socket: :meth:`VideoStreamer.submit` (called by
 the pipeline thread, never blocks) keeps at most ``queue_length`` frames and drops the oldest when the
@@ -90,8 +90,6 @@ AGC_MIN_SPAN = 8.0  # grey levels: a flat frame is not stretched into noise
 AGC_SAMPLE_STEP = 4  # percentiles over every 4th pixel in each direction (1/16 of the frame)
 Transport = Literal["rtp", "mpegts"]  # RTP/UDP (RFC 6184) or MPEG-TS/UDP (module docstring)
 TRANSPORTS: tuple[str, ...] = get_args(Transport)
-#: a capture time more than this many GOPs after the previous frame's is a step of the capture clock, not a gap
-CLOCK_JUMP_GOPS = 5
 #: a step of the capture clock is logged at most this often (each one counted: ``clock_resets``)
 CLOCK_STEP_LOG_INTERVAL_S = 10.0
 SEND_BUFFER_BYTES = 1 << 20  # an IDR (~40-110 kB at 640 x 512) leaves in one burst of datagrams
@@ -275,15 +273,16 @@ class _StreamClock:
     always move forward: ``(capture - origin) * 90 kHz`` plus a base that only changes when the capture clock steps.
 
     A capture time before the previous frame's (the camera or the autopilot rebooted, a time sync stepped the clock)
-    or more than ``max_gap_us`` after it re-bases the clock: that frame is stamped one frame period after the previous
-    one and the following frames are spaced by their capture times from it.  Without it, the stamps of every frame
+    re-bases the clock: that frame is stamped one frame period after the previous one and the following frames are
+    spaced by their capture times from it.  A step forward is kept as it is, however long: a camera silent for a
+    minute is a minute of the stream's time too (a receiver sees the gap it was), and stamps moving forward are
+    always valid.  Without it, the stamps of every frame
     after a step back were pinned one tick apart until the capture clock passed its old maximum again, and an RTP
     receiver saw the timestamps of one SSRC jump back.  ``origin_us``: the capture time of stamp 0 (None: the first
     frame's).  ``resets``: the steps seen."""
 
-    def __init__(self, fps: float, max_gap_us: int, origin_us: int | None = None) -> None:
+    def __init__(self, fps: float, origin_us: int | None = None) -> None:
         self.period_ticks = max(1, round(TS_CLOCK_HZ / float(fps)))
-        self._max_gap_us = int(max_gap_us)
         self._origin_us = origin_us
         self._base_ticks = 0
         self._last_us: int | None = None
@@ -294,7 +293,7 @@ class _StreamClock:
     def ticks(self, capture_time_us: int) -> int:
         c = int(capture_time_us)
         last_us = self._last_us
-        if last_us is not None and not 0 <= c - last_us <= self._max_gap_us:
+        if last_us is not None and c < last_us:
             self._origin_us, self._base_ticks = c, self._last_ticks + self.period_ticks
             self.resets += 1
             now_s = time.monotonic()
@@ -348,7 +347,7 @@ class H264TsEncoder:
         s.codec_context.time_base = Fraction(1, TS_CLOCK_HZ)
         s.time_base = Fraction(1, TS_CLOCK_HZ)
         self._stream = s
-        self.clock = _StreamClock(fps, CLOCK_JUMP_GOPS * int(round(gop_s * 1e6)))
+        self.clock = _StreamClock(fps)
         self.closed = False
 
     def encode(self, img_u8: np.ndarray, capture_time_us: int | None = None) -> int:
@@ -409,7 +408,7 @@ class H264RtpEncoder:
         )
         self._ts_offset = rng.getrandbits(32)
         # origin 0: the timestamps are rtp_timestamp(capture time, offset) until the capture clock steps
-        self.clock = _StreamClock(fps, CLOCK_JUMP_GOPS * int(round(gop_s * 1e6)), origin_us=0)
+        self.clock = _StreamClock(fps, origin_us=0)
         self._send = send
         ctx = av.CodecContext.create("libx264", "w")
         ctx.width, ctx.height, ctx.pix_fmt = self.width_px, self.height_px, "yuv420p"
