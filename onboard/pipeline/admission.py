@@ -305,19 +305,22 @@ class ArrivalGaps:
     or zenoh's congestion control, which drops rather than delays a camera's frames.  Pure, not thread-safe.
 
     A forward step of ``d`` frames counts ``d - 1`` missing, unless ``d`` is over ``max_gap`` (a sender numbering
-    anew, not frames lost: counted as nothing).  A frame up to ``reorder`` behind the newest arrived late: one of
-    those counted missing came after all.  Further behind, the sender restarted its numbering: taken as the new
-    newest.  A duplicate changes nothing."""
+    anew, not frames lost: counted as nothing).  A frame up to ``reorder`` behind the newest that had not arrived
+    came late: one of those counted missing came after all.  One that had arrived (the last ``reorder`` are
+    remembered), like any frame sent twice, changes nothing.  Further behind, the sender restarted its numbering:
+    taken as the new newest."""
 
     def __init__(self, max_gap: int = 1000, reorder: int = 8) -> None:
         self.max_gap = int(max_gap)
         self.reorder = int(reorder)
         self.newest: int | None = None
         self.missing = 0
+        self._arrived = 0  # bit k: frame newest - k arrived (k = 0 .. reorder)
+        self._window = (1 << (self.reorder + 1)) - 1
 
     def see(self, seq: int) -> None:
         if self.newest is None:
-            self.newest = seq
+            self.newest, self._arrived = seq, 1
             return
         step = (seq - self.newest) % SEQ_MOD
         if step == 0:
@@ -326,7 +329,11 @@ class ArrivalGaps:
             if step <= self.max_gap:
                 self.missing += step - 1
             self.newest = seq
-        elif SEQ_MOD - step <= self.reorder:
+            self._arrived = ((self._arrived << min(step, self.reorder + 1)) | 1) & self._window
+            return
+        back = SEQ_MOD - step
+        if back > self.reorder:
+            self.newest, self._arrived = seq, 1
+        elif not self._arrived >> back & 1:
+            self._arrived |= 1 << back
             self.missing = max(0, self.missing - 1)
-        else:
-            self.newest = seq
