@@ -42,10 +42,19 @@ def pytest_collection_modifyitems(items):
             item.add_marker(pytest.mark.xdist_group(PROCESS_GROUP))
 
 
+#: the shell's IRTRACK_* variables the suite keeps (its own switch); every other one is a config override
+#: (IRTRACK_<SECTION>_<FIELD>, IRTRACK_HEALTH_FILE: the container images set some) that would change what the tests
+#: and the daemons they start run on, so a suite run inside the simulator's image failed where a clean shell passed
+KEPT_ENV = frozenset({"IRTRACK_NO_SKIPS"})
+
+
 def pytest_configure(config):
-    """Refuse ``--dist loadgroup`` where it would not group: pytest-xdist (3.8) groups by appending ``@group`` to
-    each test's node id, which pytest 9.2 ignores (its node ids became structured): the process tests were then
-    spread over both workers, silently, real-time flights beside each other (pyproject.toml pins pytest < 9.2)."""
+    """Drop the shell's config overrides (:data:`KEPT_ENV`).  Refuse ``--dist loadgroup`` where it would not group:
+    pytest-xdist (3.8) groups by appending ``@group`` to each test's node id, which pytest 9.2 ignores (its node ids
+    became structured): the process tests were then spread over both workers, silently, real-time flights beside
+    each other (pyproject.toml pins pytest < 9.2)."""
+    for name in [n for n in os.environ if n.startswith("IRTRACK_") and n not in KEPT_ENV]:
+        del os.environ[name]
     if config.getoption("dist", "no") == "loadgroup" and _pytest_version() >= (9, 2):
         raise pytest.UsageError(
             f"--dist loadgroup does not group tests under pytest {pytest.__version__} (pytest-xdist appends the "
