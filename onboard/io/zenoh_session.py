@@ -28,8 +28,8 @@ Behaviour measured with eclipse-zenoh 1.10 (peer mode):
   use"): :func:`open_session` raises :class:`ZenohSessionError`.
 * A connect endpoint with nobody listening does NOT fail ``zenoh.open`` (it returns after
   about 0.5 s) and zenoh keeps retrying in the background, at most a second apart
-  (:data:`CONNECT_RETRY`; zenoh's own backoff grows to 4 s): a peer that starts later is joined
-  within about a second.  This is what the daemon wants (start before the simulator).
+  (:data:`CONNECT_RETRY`, unless a zenoh config file sets its own ``connect/retry``; zenoh's own
+  backoff grows to 4 s): a peer that starts later is joined within about a second.  This is what the daemon wants (start before the simulator).
   With ``connect_timeout_s`` set, the session instead requires a peer within that time
   (zenoh ``connect/exit_on_failure`` + ``connect/timeout_ms``) and raises
   :class:`ZenohSessionError` otherwise.
@@ -393,9 +393,10 @@ def build_config(settings: ZenohConfig, *, max_payload_bytes: int | None = None,
         # for a vehicle whose camera reconnects.  Every payload is copied out at once anyway; a config file may
         # still turn it on
         _insert(config, "transport/shared_memory/enabled", False, "transport/shared_memory/enabled")
+    if json.loads(config.get_json("connect/retry") or "null") is None:
         # zenoh's own backoff grows to 4 s between dials: a peer that came up after a slow start (a daemon importing
         # on a loaded companion, a router restarted) was joined up to 4 s late, and a ground station started first
-        # missed its first tracks.  A dial of a loopback or link-local endpoint a second is cheap
+        # missed its first tracks.  A dial a second is cheap; a config file that sets its own retry keeps it
         _insert(config, "connect/retry", CONNECT_RETRY, "connect/retry")
 
     if settings.connect_timeout_s is not None:

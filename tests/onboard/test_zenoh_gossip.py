@@ -13,7 +13,7 @@ import pytest
 import zenoh
 
 from groundsim.io.ports import free_tcp_port
-from onboard.io.zenoh_session import ZenohConfig, build_config, config_from_options
+from onboard.io.zenoh_session import CONNECT_RETRY, ZenohConfig, build_config, config_from_options
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(60)]
 
@@ -78,10 +78,13 @@ def test_shared_memory_is_off_unless_a_config_file_says(tmp_path):
 
 def test_a_connect_endpoint_is_dialed_again_within_a_second_unless_a_config_file_says(tmp_path):
     """zenoh's own backoff grows to 4 s between dials, so a peer that came up late was joined up to 4 s after it
-    listened; sessions built from settings alone dial again at most a second apart; a config file keeps the say."""
+    listened; sessions dial again at most a second apart, unless their config file sets its own retry."""
     cfg = build_config(ZenohConfig(connect=("tcp/127.0.0.1:7447",)))
     retry = json.loads(cfg.get_json("connect/retry"))
     assert retry["period_max_ms"] <= 1000 and retry["period_init_ms"] <= retry["period_max_ms"]
     f = tmp_path / "z.json5"
     f.write_text("{ connect: { retry: { period_init_ms: 3000, period_max_ms: 9000, period_increase_factor: 2 } } }")
     assert json.loads(build_config(ZenohConfig(config_file=str(f))).get_json("connect/retry"))["period_max_ms"] == 9000
+    quiet = tmp_path / "quiet.json5"  # a file that says nothing of it (the fleet's router file, say)
+    quiet.write_text("{ mode: 'peer' }")
+    assert json.loads(build_config(ZenohConfig(config_file=str(quiet))).get_json("connect/retry")) == CONNECT_RETRY
