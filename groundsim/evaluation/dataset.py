@@ -41,14 +41,14 @@ gt.txt (MOT 1.1 ground truth): ``frame, id, bb_left, bb_top, bb_width, bb_height
 visibility``.  Its box is not the box above but the ``groundsim.evaluation.mot.BOX_SIDE_PX`` (6 px) square about
 the label's centroid ``(u_px, v_px)``, in MOT's 1-based pixel coordinates (``bb_left = u_px - 3 + 1``) and not
 clipped to the image: ``groundsim eval``'s convention for point targets, whose boxes of a few pixels make IoU
-meaningless (a point tracker's box, its blob's pixels or a square about its centre, does not reach IoU 0.5 with
-a 3 x 3 px blob's box even on the right centre; ``onboard.track_video --box-px 6`` writes the matching squares).
-labels.csv and COCO keep the box as drawn (detection).  Class 1 (the one class TrackEval's MOT reader evaluates;
-here: "the target") and consider 1; a target behind a cloud consider 0 and class
-``groundsim.evaluation.mot.HIDDEN_CLASS`` (8, MOT17's "distractor"), as in ``groundsim eval``'s files: TrackEval
-leaves the row out of the truth and drops a tracker's box that matches it (a tracker coasting through the cloud is
-right), where with any other class it would still count that box a false positive; visibility the target's visible fraction (labels.csv's ``visibility``: how much of
-its drawn box is in the image, not of the square, which may reach past the edge), 0 behind a cloud.
+meaningless (a point tracker's box, its blob's pixels or a square about its centre, does not reach IoU 0.5 with a 3 x 3
+px blob's box even on the right centre; ``onboard.track_video --box-px 6`` writes the matching squares). labels.csv and
+COCO keep the box as drawn (detection). Class 1 (the one class TrackEval's MOT reader evaluates; here: "the target") and
+consider 1; a target behind a cloud consider 0 and class ``groundsim.evaluation.mot.HIDDEN_CLASS`` (8, MOT17's
+"distractor"), as in ``groundsim eval``'s files: TrackEval leaves the row out of the truth and drops a tracker's box
+that matches it (a tracker coasting through the cloud is right), where with any other class it would still count that
+box a false positive; visibility the target's visible fraction (labels.csv's ``visibility``: how much of its drawn box
+is in the image, not of the square, which may reach past the edge), 0 behind a cloud.
 ``DIR/seqmaps/irtrack-all.txt`` lists the sequences (TrackEval's ``SEQMAP_FILE``, with ``GT_FOLDER=DIR``,
 ``SKIP_SPLIT_FOL=True``).  A run into a folder that holds a
 dataset replaces the sequences it makes again whole (their files of formats not asked for go too, as does
@@ -70,11 +70,11 @@ An object behind a cloud, the target included, is a COCO ``iscrowd`` 1 annotatio
 ``occluded``, keypoint flag 1): pycocotools' ``COCOeval`` ignores it, neither a miss nor, where a detection
 matches it, a false positive, as TrackEval treats the MOT rows of hidden objects (consider 0, class 8)
 (``COCOeval`` reads no other "ignore" field: it sets its own from ``iscrowd``).
-A frame the camera model dropped (its shutter closed, ``ffc.mode: dropped``) is written as an all-zero image.  COCO: boxes ``[x, y, w, h]`` in
-continuous 0-based pixels (and as a 4-corner polygon ``segmentation``), one keypoint ``[u, v, 2]`` = the sub-pixel centroid, plus ``track_id``,
-``visibility`` (the target's), ``visibility_state`` (every annotation's: ``visible`` or ``occluded``),
-``centroid_px`` on each annotation and ``sequence``, ``frame_index``, ``time_boot_us`` on
-each image.
+A frame the camera model dropped (its shutter closed, ``ffc.mode: dropped``) is written as an all-zero image. COCO:
+boxes ``[x, y, w, h]`` in continuous 0-based pixels (and as a 4-corner polygon ``segmentation``), one keypoint
+``[u, v, 2]`` = the sub-pixel centroid, plus ``track_id``, ``visibility`` (the target's), ``visibility_state`` (every
+annotation's: ``visible`` or ``occluded``), ``centroid_px`` on each annotation and ``sequence``, ``frame_index``,
+``time_boot_us`` on each image.
 
 Camera pose.  *True*: the flown camera (truth.csv ``cam_*``, ``q_ned_from_cam_*``).  *Measured*: what the
 daemon rebuilds from the telemetry the simulated vehicle sends (:func:`groundsim.world.nav_errors.reported_state`

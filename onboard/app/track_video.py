@@ -11,11 +11,11 @@
 * a folder of frames: PNG (8- or 16-bit), TIFF, JPEG or BMP files, sorted by name (numbers in names by value:
   ``2.png`` before ``10.png``), read with OpenCV as stored (``IMREAD_UNCHANGED``: a 16-bit PNG stays 16-bit;
   colour frames, and grey frames with an alpha channel, are turned to grey, which the summary line says);
-* a sequence folder of a public tracking benchmark: MOT's (its ``seqinfo.ini``, whose ``imDir`` names the
-  frames' folder, ``img1/`` when it names none -- an ``imDir`` outside the sequence folder or missing is refused
-  --, whose ``frameRate`` is the rate unless ``--fps`` says, and whose ``seqLength`` is checked against the
-  frames; its image folder given itself, the ``seqinfo.ini`` above it is read alike), Anti-UAV's (its frames, or its ``IR.mp4`` / ``infrared.mp4``, with ``IR_label.json`` /
-  ``infrared.json`` beside).
+* a sequence folder of a public tracking benchmark: MOT's (its ``seqinfo.ini``, whose ``imDir`` names the frames'
+  folder, ``img1/`` when it names none -- an ``imDir`` outside the sequence folder or missing is refused --, whose
+  ``frameRate`` is the rate unless ``--fps`` says, and whose ``seqLength`` is checked against the frames; its image
+  folder given itself, the ``seqinfo.ini`` above it is read alike), Anti-UAV's (its frames, or its ``IR.mp4`` /
+  ``infrared.mp4``, with ``IR_label.json`` / ``infrared.json`` beside).
 
 Every frame goes through the daemon's ``imaging.chain: objects`` (:class:`onboard.imaging.objects.ObjectTracker`,
 its default parameters) without a pose: the camera is taken as still, so association is in image space (the
@@ -75,9 +75,9 @@ confirmed ends with one warning saying why that is likely: the chain confirms po
 pixels, so extended targets (an object filling more than a few pixels) and targets too dim against their local
 noise are not confirmed.  It still exits 0 with the empty output: a sky with nothing in it has none.
 
-Exit codes: 0 done; 2 bad input -- a missing path, a seqinfo.ini ``imDir`` refused, a frame that cannot be read,
-frames of mixed size or depth or too small, two frame files of one number, an output that cannot be written or
-naming an input -- in one line naming the file; 130 interrupted by Ctrl-C or SIGTERM (the tracks of the frames done are in the output).
+Exit codes: 0 done; 2 bad input -- a missing path, a seqinfo.ini ``imDir`` refused, a frame that cannot be read, frames
+of mixed size or depth or too small, two frame files of one number, an output that cannot be written or naming an input
+-- in one line naming the file; 130 interrupted by Ctrl-C or SIGTERM (the tracks of the frames done are in the output).
 """
 
 from __future__ import annotations

@@ -86,6 +86,17 @@ seconds, its own clock) and what it saw; tests feed it a fake clock.  Each condi
     clock_apart_s`): the frames get no pose, so no line of sight and no 3-D, until the two clocks agree again (the
     first frame within the threshold clears it).  A pose at such a stamp would be seconds old or missing.
 
+``stream_rate_low``
+    A requested telemetry stream (ATTITUDE_QUATERNION, GLOBAL_POSITION_INT, the followed gimbal's #285) arrives at
+    under half the rate its SET_MESSAGE_INTERVAL asked for, averaged over the last 5 s and judged from 3 s after the
+    request was ACCEPTED (:class:`onboard.core.stream_rate.StreamRates`): the autopilot caps it or the link loses
+    messages.  Reset on a link loss or a new request; cleared when the stream is back over half its rate.
+
+``utc_disputed``
+    A SYSTEM_TIME disagrees with the boot clock -> UTC mapping and no step is confirmed yet
+    (:class:`onboard.core.utc_clock.UtcClock`): ``time_unix_us`` carries a sigma that covers both readings until
+    the next samples tell a wild sample from a UTC step; cleared when they do.
+
 ``video_rate``
     The H.264 stream's camera runs at a rate other than ``video.fps`` by more than ``VIDEO_RATE_TOLERANCE``
     (20 %), measured from the frames' capture times (:attr:`onboard.io.video.VideoStreamer.camera_rate_hz`):

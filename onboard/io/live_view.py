@@ -112,6 +112,8 @@ Q_ENU_FROM_NED = quat_from_rotmat(np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0
 #: the camera's drawn size: the depth of its field-of-view pyramid, m
 FRUSTUM_DEPTH_M = 10.0
 
+#: what the server's stop is given at least at close, whatever the publisher thread's join took of the budget
+STOP_FLOOR_S = 0.2
 #: the logger the SDK's WebSocket server logs under (its modules' loggers below it: .server, .connected_client, ...)
 SDK_WEBSOCKET_LOGGER = "foxglove.websocket"
 #: kinds of client error told apart; more (an SDK that words its errors with what the client sent) count as "other"
@@ -395,7 +397,8 @@ class LiveView:
                 _sdk_log_router.client_log = ClientLog()
         stopper = threading.Thread(target=server.stop, name="irtrack-live-view-stop", daemon=True)
         stopper.start()
-        stopper.join(max(deadline_s - time.monotonic(), 0.0))
+        # a floor: the publisher's join may have used the whole budget, and a server that stops at once is no warning
+        stopper.join(max(deadline_s - time.monotonic(), STOP_FLOOR_S))
         if stopper.is_alive():
             log.warning(
                 "live view: the server did not stop within %.1f s (a client not reading?); left to end with the process",
@@ -481,9 +484,9 @@ class LiveView:
         sec, nsec = f.pop("timestamp")
         self._ch["frame"].log(RawImage(timestamp=_ts(sec, nsec), **f))
 
-    # Each message below is built only for a channel a client subscribes to (has_sinks): the scene alone, with its
-    # trails of a few hundred points, costs the publisher thread a millisecond or more a frame, holding the GIL the
-    # pipeline needs, for nobody.  The trails are kept all the same, so that a client that joins sees them whole.
+    # Each message below is built only for a channel a client subscribes to (has_sinks): building the scene with its
+    # trails of a few hundred points holds the GIL the pipeline needs, and nobody would read it.  The trails are kept
+    # all the same, so that a client that joins sees them whole.
 
     def _pub_status(self, payload: bytes) -> None:
         if self._ch["status"].has_sinks():
