@@ -90,11 +90,22 @@ def test_a_track_coasting_on_a_hidden_object_is_neither_a_hit_nor_a_false_positi
     seqs = write_mot(tmp_path, [run], {"S": (640, 512, 30.0)})
     m = score_mot(tmp_path, seqs)[seqs[0]]
     assert m["HOTA"] == pytest.approx(1.0) and m["MOTA"] == pytest.approx(1.0)
-    ps = PerceptionScore(frame_rate_hz=1.0)
-    ps.add([(0, 100.0, 50.0, True, 10.0)], {3: (100.0, 50.0)}, None)
-    ps.add([(0, u, 50.0, False, 10.0)], {3: (u, 50.0)}, None)
-    f = ps.figures()
-    assert f["false_tracks_per_min"] == 0.0 and f["pd_counted"] == 0  # settling: 1 s; the hidden frame not counted
+
+    def perception(track_u_when_hidden: float) -> dict:
+        """Five frames at 1 Hz: the object visible on two, hidden on three, the track on it while visible."""
+        ps = PerceptionScore(frame_rate_hz=1.0)
+        for k in range(5):
+            visible = k < 2
+            obj_u = 100.0 if visible else u
+            track_u = 100.0 if visible else track_u_when_hidden
+            ps.add([(0, obj_u, 50.0, visible, 10.0)], {3: (track_u, 50.0)}, None)
+        return ps.figures()
+
+    on_it, off_it = perception(u), perception(u + 200.0)
+    # on the hidden object three frames of five: not a false track; 200 px off it those frames: one
+    assert on_it["false_tracks_per_min"] == 0.0 and off_it["false_tracks_per_min"] > 0.0
+    # the hidden frames are not counted for the detection probability (the visible one past the 1 s settling is)
+    assert on_it["pd_counted"] == 1
 
 
 def test_perception_score_pd_false_tracks_switches_and_state_accuracy():
