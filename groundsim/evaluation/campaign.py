@@ -96,11 +96,14 @@ from groundsim.evaluation.campaign_spec import (
 )
 from groundsim.evaluation.out_dir import make_out_dir, refuse_foreign_out
 from groundsim.evaluation.parallel import (
+    finish_pool,
     limit_blas_threads,
+    pool_results,
     pool_workers,
     progress_bar,
     quiet_run_logs,
     start_pool,
+    stop_pool,
 )
 from groundsim.io.stop_signals import finish_despite_signals, signals_held, sigterm_as_ctrl_c
 from groundsim.world.noise_cases import NoiseCase, load_noise_cases
@@ -421,7 +424,9 @@ def _run_synthetic(job: Job) -> list[dict]:
                 p, P = np.asarray(e.p_ned_m, dtype=float), np.asarray(e.cov_p_ned_m2, dtype=float)
                 if p.shape == (3,) and P.shape == (3, 3) and np.all(np.isfinite(p)) and np.all(np.isfinite(P)):
                     est_p[k], est_P[k], observable[k] = p, P, bool(e.observable)
-        except Exception as exc:  # noqa: BLE001 - a plug-in that cannot be built fails its runs alone
+        except KeyboardInterrupt:
+            raise
+        except BaseException as exc:  # noqa: BLE001 - a plug-in that cannot be built or exits fails its runs alone
             rows.append(_failed_row(params, exc, w0, case))
             continue
         m = score_track(truth.t_s, truth.p_target_ned_m, truth.p_cam_ned_m, est_p, est_P, observable)
@@ -435,8 +440,10 @@ def _run_synthetic(job: Job) -> list[dict]:
 
 
 def _failed_row(params, exc: BaseException, w0: float, case: dict | None = None) -> dict:
-    """The row of a run that could not be made: status failed, the exception on one line, its wall time."""
-    error = f"{type(exc).__name__}: {' '.join(str(exc).split())}"
+    """The row of a run that could not be made: status failed, the exception on one line naming the algorithm
+    (a plug-in's SystemExit included: in a pool worker it had ended the worker and hung the campaign), its wall
+    time."""
+    error = f"{type(exc).__name__} in algorithm {params.algorithm}: {' '.join(str(exc).split())}"
     return _row(params, {**(case or {}), "status": "failed", "error": error, "wall_s": time.perf_counter() - w0})
 
 
@@ -457,7 +464,9 @@ def _run_closed_loop(job: Job) -> list[dict]:
         )
         try:
             r = run_lockstep(job.scenario, params.seed, opts, job.base_config)
-        except Exception as exc:  # noqa: BLE001 - a run that cannot be made (flight envelope, plug-in) fails alone
+        except KeyboardInterrupt:
+            raise
+        except BaseException as exc:  # noqa: BLE001 - a run that cannot be made (flight envelope, plug-in) fails alone
             rows.append(_failed_row(params, exc, w0))
             continue
         s = score_run(r)
@@ -747,17 +756,9 @@ def check_workers(client, scheduler: str) -> int:
     return sum(nthreads.values())
 
 
-def _pool_futures(pool, jobs: list[Job]):
-    """Each job submitted to a multiprocessing pool, as a ``concurrent.futures.Future`` of its rows."""
-    import concurrent.futures as cf
-
-    futs = []
-    for j in jobs:
-        f = cf.Future()
-        f.set_running_or_notify_cancel()
-        pool.apply_async(run_job, (j,), callback=f.set_result, error_callback=f.set_exception)
-        futs.append(f)
-    return futs
+def _lost_rows(job: Job, why: str) -> list[dict]:
+    """The failed rows of a job whose pool worker ended under it (a plug-in's os._exit, a crash)."""
+    return [_row(p, {"status": "failed", "error": f"WorkerLost in algorithm {p.algorithm}: {why}"}) for p in job.runs]
 
 
 def run_campaign(
@@ -848,12 +849,9 @@ def run_campaign(
                 ]
                 results = (f.result() for f in as_completed(futures, loop=client.loop))
             elif workers > 1:  # the same, on a local pool
-                import concurrent.futures as cf
-
                 # every worker started before Ctrl-C is taken (a half-started forkserver worker printed a traceback)
                 pool, _ = start_pool(workers, CAMPAIGN_PRELOAD, progress=False)
-                futures = _pool_futures(pool, jobs)
-                results = (f.result() for f in cf.as_completed(futures))
+                results = (rows for _, rows in pool_results(pool, run_job, jobs, on_lost=_lost_rows))
             else:
                 results = (run_job(j) for j in jobs)
             for rows in results:
@@ -867,8 +865,7 @@ def run_campaign(
                         f"{rows[0]['scenario']} {rows[0]['geometry']} {rows[0]['noise']} seed {rows[0]['seed']}"
                     )
             if pool is not None:
-                pool.close()
-                pool.join()
+                finish_pool(pool)
                 pool = None
         except KeyboardInterrupt:
             interrupted = True
@@ -878,8 +875,7 @@ def run_campaign(
             received = finishing.enter_context(finish_despite_signals("the table and the report"))
             # interrupted or failed: drop what is still queued or running (its runs are redone on resume)
             if pool is not None:
-                pool.terminate()
-                pool.join()
+                stop_pool(pool)
             if client is not None:
                 try:
                     if futures:

@@ -796,14 +796,40 @@ class EvalInterrupted(KeyboardInterrupt):
         self.planned = planned
 
 
+def _plugins(options: EvalOptions) -> str:
+    """The plug-ins a run loads, for its error line: ``estimator X, tracker Y`` (the defaults left out)."""
+    named = [
+        f"{kind} {name}" for kind, name in (("estimator", options.estimator), ("tracker", options.tracker)) if name
+    ]
+    return ", ".join(named) or "the configuration's estimator and chain"
+
+
 def _job(args) -> RunResult:
-    """One run, in a pool worker or here; a run that cannot be made (e.g. a flight failure) fails alone."""
+    """One run, in a pool worker or here; a run that cannot be made (e.g. a flight failure) fails alone.
+
+    Any exception but Ctrl-C fails the run, SystemExit too: a plug-in is foreign code, and its sys.exit() in a
+    pool worker ended the worker with its job unfinished (the pool waited for it for ever); in this process it
+    ended the command with the plug-in's exit code, the runs already done lost."""
     scenario, seed, options, base_config = args
     try:
         return run_lockstep(scenario, seed, options, base_config, report_progress)
     except IrtrackError as exc:
         log.error("%s seed %d: %s", scenario.name, seed, exc)
         return _empty_result(scenario, seed, f"{type(exc).__name__}: {' '.join(str(exc).split())}")
+    except KeyboardInterrupt:
+        raise
+    except BaseException as exc:  # noqa: BLE001 - foreign code: whatever it raises fails this run alone
+        error = f"{type(exc).__name__} in a run with {_plugins(options)}: {' '.join(str(exc).split())}"
+        log.error("%s seed %d: %s", scenario.name, seed, error)
+        return _empty_result(scenario, seed, error)
+
+
+def _lost_job(args, why: str) -> RunResult:
+    """The failed run of a job whose pool worker ended under it (a plug-in's os._exit, a crash)."""
+    scenario, seed, options, _ = args
+    error = f"WorkerLost in a run with {_plugins(options)}: {why}"
+    log.error("%s seed %d: %s", scenario.name, seed, error)
+    return _empty_result(scenario, seed, error)
 
 
 def run_eval(
@@ -843,7 +869,7 @@ def run_eval(
     if progress:
         bar = progress_bar(total, "frame", "eval" if workers == 1 else f"eval ({workers} workers)")
     try:
-        results = run_jobs(_job, jobs, workers, None if bar is None else bar.update)
+        results = run_jobs(_job, jobs, workers, None if bar is None else bar.update, on_lost=_lost_job)
     except JobsInterrupted as exc:
         done = [r for r in exc.results if r is not None]
         scores = [score_run(r) for r in done]

@@ -17,6 +17,7 @@ from contextlib import contextmanager
 __all__ = [
     "DEFAULT_PRELOAD",
     "JobsInterrupted",
+    "WorkerLost",
     "pool_workers",
     "mp_context",
     "init_worker",
@@ -26,6 +27,9 @@ __all__ = [
     "run_jobs",
     "run_pool",
     "start_pool",
+    "pool_results",
+    "stop_pool",
+    "finish_pool",
     "quiet_run_logs",
     "progress_bar",
     "bar_pacing",
@@ -35,6 +39,7 @@ __all__ = [
 DEFAULT_PRELOAD = ("groundsim.evaluation.eval", "groundsim.evaluation.report")
 
 _progress: Callable[[int], object] | None = None  # where report_progress goes in this process
+_starts = None  # in a pool worker: where a job says it started on this process (start_pool's SimpleQueue)
 POOL_START_TIMEOUT_S = 120.0  # the longest a pool's start holds Ctrl-C (the fork server imports on a busy machine)
 
 
@@ -48,6 +53,10 @@ class JobsInterrupted(KeyboardInterrupt):
     @property
     def done(self) -> int:
         return sum(r is not None for r in self.results)
+
+
+class WorkerLost(RuntimeError):
+    """A pool worker process ended while it ran a job (``os._exit``, a crash, a kill): that job has no result."""
 
 
 def pool_workers(workers: int | None) -> int:
@@ -96,13 +105,14 @@ def mp_context(preload: tuple[str, ...] = DEFAULT_PRELOAD):
     return ctx
 
 
-def init_worker(queue=None, ready=None, owner_pid: int | None = None) -> None:
+def init_worker(queue=None, ready=None, owner_pid: int | None = None, starts=None) -> None:
     """A pool worker's set-up: SIGINT ignored, ended with the process that made the pool (``owner_pid``:
     :func:`end_with_owner`), one BLAS and one OpenCV thread, progress to ``queue``; a 0 to ``ready`` (or
-    ``queue``) once started."""
+    ``queue``) once started; ``starts``: where :func:`pool_results`' jobs say which process runs them."""
     import signal
 
-    global _progress
+    global _progress, _starts
+    _starts = starts
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's: it terminates the pool
     if owner_pid is not None:
         end_with_owner(owner_pid)
@@ -155,9 +165,12 @@ def report_progress(n: int) -> None:
         _progress(n)
 
 
-def run_jobs(job, jobs: list, workers: int, on_progress=None, preload: tuple[str, ...] = DEFAULT_PRELOAD) -> list:
+def run_jobs(
+    job, jobs: list, workers: int, on_progress=None, preload: tuple[str, ...] = DEFAULT_PRELOAD, on_lost=None
+) -> list:
     """``job(j)`` for every ``j`` of ``jobs``, in this process (``workers`` 1) or on a fork-server pool; their
-    results in the order of ``jobs``.  ``on_progress(n)`` gets what the jobs pass to :func:`report_progress`.
+    results in the order of ``jobs``.  ``on_progress(n)`` gets what the jobs pass to :func:`report_progress`;
+    ``on_lost(j, why)`` is the result of a job whose pool worker ended under it (:func:`pool_results`).
     Ctrl-C raises :class:`JobsInterrupted` with the results so far (the pool terminated first)."""
     global _progress
     if workers <= 1:
@@ -171,7 +184,7 @@ def run_jobs(job, jobs: list, workers: int, on_progress=None, preload: tuple[str
         finally:
             _progress = saved
         return results
-    return run_pool(job, jobs, workers, on_progress, preload)
+    return run_pool(job, jobs, workers, on_progress, preload, on_lost)
 
 
 def start_pool(workers: int, preload: tuple[str, ...] = DEFAULT_PRELOAD, progress: bool = True):
@@ -208,7 +221,9 @@ def start_pool(workers: int, preload: tuple[str, ...] = DEFAULT_PRELOAD, progres
         try:
             ready = ctx.Queue()
             q = ready if progress else None
-            pool = ctx.Pool(workers, initializer=init_worker, initargs=(q, ready, os.getpid()))
+            starts = ctx.SimpleQueue()
+            pool = ctx.Pool(workers, initializer=init_worker, initargs=(q, ready, os.getpid(), starts))
+            pool.job_starts = starts  # read by pool_results
             t_end = time.monotonic() + POOL_START_TIMEOUT_S
             started = 0
             while started < workers and time.monotonic() < t_end:
@@ -227,18 +242,131 @@ def start_pool(workers: int, preload: tuple[str, ...] = DEFAULT_PRELOAD, progres
             signal.raise_signal(signal.SIGTERM)  # to its handler, now back
     except BaseException:
         if pool is not None:
-            pool.terminate()
-            pool.join()
+            stop_pool(pool)
         raise
     return pool, q
 
 
-def run_pool(job, jobs: list, workers: int, on_progress=None, preload: tuple[str, ...] = DEFAULT_PRELOAD) -> list:
+def _watched(job, i: int, j):
+    """In a pool worker: say that job ``i`` runs on this process (before it can end the process), then run it."""
+    import os
+
+    if _starts is not None:
+        _starts.put((i, os.getpid()))  # a SimpleQueue's put is written before it returns: no feeder thread to lose
+    return job(j)
+
+
+def _worker_gone(pid: int, procs: dict) -> str | None:
+    """How worker ``pid`` ended (`` (exit code 3)``, `` (killed by signal 9)``, ``""`` when not known), or None
+    while it runs."""
+    import os
+
+    p = procs.get(pid)
+    if p is not None:
+        code = p.exitcode
+        if code is None:
+            return None
+        return f" (killed by signal {-code})" if code < 0 else f" (exit code {code})"
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return ""
+    except PermissionError:
+        return None
+    return None
+
+
+#: how long a job whose worker has ended may still deliver its result (sent just before the end) before it is lost
+LOST_GRACE_S = 1.0
+
+
+def pool_results(pool, job, jobs: list, on_lost=None, drain=None) -> Iterator[tuple[int, object]]:
+    """``(i, job(jobs[i]))`` as each job finishes on ``pool`` (from :func:`start_pool`), in the order they finish.
+
+    A job whose worker process ends under it (``os._exit``, a crash, a kill) yields ``on_lost(jobs[i], why)``
+    (raises :class:`WorkerLost` without ``on_lost``): a multiprocessing pool replaces such a worker but never
+    finishes its job, so a command waiting for every result had waited for ever.  ``drain(timeout_s)`` is
+    called while waiting (the progress queue's reader), else the wait is a 0.2 s poll."""
+    import time
+
+    starts = getattr(pool, "job_starts", None)
+    pending = [pool.apply_async(_watched, (job, i, j)) for i, j in enumerate(jobs)]
+    left = set(range(len(jobs)))
+    running: dict[int, int] = {}  # job -> the worker pid it started on
+    procs: dict = {}  # every worker process seen, by pid: a replaced one leaves the pool's list
+    gone_since: dict[int, float] = {}
+    while left:
+        if drain is not None:
+            drain(0.2)
+        else:
+            pending[min(left)].wait(0.2)
+        procs.update((p.pid, p) for p in list(getattr(pool, "_pool", [])))
+        while starts is not None and not starts.empty():
+            i, pid = starts.get()
+            running[i] = pid
+        for i in sorted(left):
+            if pending[i].ready():
+                left.discard(i)
+                yield i, pending[i].get()  # re-raises the job's exception here
+                continue
+            pid = running.get(i)
+            why = None if pid is None else _worker_gone(pid, procs)
+            if why is None:
+                continue
+            t_gone = gone_since.setdefault(i, time.monotonic())
+            if time.monotonic() - t_gone < LOST_GRACE_S:
+                continue
+            left.discard(i)
+            reason = f"its worker process (pid {pid}) ended{why} before the job finished"
+            if on_lost is None:
+                raise WorkerLost(reason)
+            yield i, on_lost(jobs[i], reason)
+
+
+def stop_pool(pool, timeout_s: float = 10.0) -> None:
+    """Terminate ``pool`` and wait for it, bounded: a pool whose worker died holding the task queue's lock (killed
+    while it waited for a task) hangs ``Pool.terminate`` for ever; after ``timeout_s`` its workers are killed
+    and the lock freed so that the terminate can finish."""
+    import threading
+
+    workers = list(getattr(pool, "_pool", []))
+    t = threading.Thread(target=lambda: (pool.terminate(), pool.join()), name="stop-pool", daemon=True)
+    t.start()
+    t.join(timeout_s)
+    if not t.is_alive():
+        return
+    for p in workers + list(getattr(pool, "_pool", [])):
+        try:
+            p.kill()
+        except (OSError, ValueError, AttributeError):
+            pass
+    lock = getattr(getattr(pool, "_inqueue", None), "_rlock", None)
+    try:
+        if lock is not None:
+            lock.release()  # held by a dead worker: no one else will ever release it
+    except ValueError:
+        pass
+    t.join(timeout_s)
+
+
+def finish_pool(pool) -> None:
+    """Close ``pool`` and wait for its workers once its jobs are done; terminated instead when a job was lost with
+    its worker (:func:`pool_results`): the pool still counts that job as pending and its join would wait for ever."""
+    if getattr(pool, "_cache", None):
+        stop_pool(pool)
+    else:
+        pool.close()
+        pool.join()
+
+
+def run_pool(
+    job, jobs: list, workers: int, on_progress=None, preload: tuple[str, ...] = DEFAULT_PRELOAD, on_lost=None
+) -> list:
     """``job(j)`` for every ``j`` of ``jobs`` on ``workers`` fork-server processes (:func:`start_pool`); their
     results in the order of ``jobs``.  What the jobs report with :func:`report_progress` is handed to
-    ``on_progress`` as it arrives.  A worker's exception is re-raised here after the pool is terminated; Ctrl-C
-    terminates the pool and raises :class:`JobsInterrupted` (one during the pool's start waits until its
-    workers have started)."""
+    ``on_progress`` as it arrives.  A worker's exception is re-raised here after the pool is terminated; a job
+    whose worker ends under it is ``on_lost(j, why)`` (:func:`pool_results`); Ctrl-C terminates the pool and
+    raises :class:`JobsInterrupted` (one during the pool's start waits until its workers have started)."""
     import queue as queue_mod
 
     results: list = [None] * len(jobs)
@@ -255,27 +383,19 @@ def run_pool(job, jobs: list, workers: int, on_progress=None, preload: tuple[str
 
     try:
         pool, q = start_pool(workers, preload)
-        pending = [pool.apply_async(job, (j,)) for j in jobs]
-        left = set(range(len(jobs)))
-        while left:
-            drain(0.2)
-            for i in [i for i in left if pending[i].ready()]:
-                results[i] = pending[i].get()  # re-raises a worker's exception here
-                left.discard(i)
+        for i, r in pool_results(pool, job, jobs, on_lost, drain):
+            results[i] = r
         while drain(None):  # the last progress messages
             pass
-        pool.close()
-        pool.join()
+        finish_pool(pool)
         return results
     except KeyboardInterrupt:
         if pool is not None:
-            pool.terminate()
-            pool.join()
+            stop_pool(pool)
         raise JobsInterrupted(results) from None
     except BaseException:
         if pool is not None:
-            pool.terminate()
-            pool.join()
+            stop_pool(pool)
         raise
 
 

@@ -126,3 +126,24 @@ def test_pool_workers_end_with_a_command_killed_outright():
         assert not left, f"alive {POOL_GONE_S} s after their command was killed: {left}"
     finally:
         kill_all([proc.pid, *pool])
+
+
+LOST_BOUND_S = 60.0  # hang guard: a pool that lost a worker had waited for ever
+
+
+@pytest.mark.integration
+@pytest.mark.multicore
+def test_a_job_that_ends_its_worker_fails_alone_and_the_pool_ends():
+    """A pool worker gone under its job (sys.exit or os._exit in foreign code) left that job pending for ever: the
+    command never ended, and its terminate hung too.  Now the job is ``on_lost``'s result, the others are kept."""
+    import time
+
+    from groundsim.evaluation.parallel import run_jobs
+    from tests.groundsim.plugin_faults import pool_job
+
+    t0 = time.monotonic()
+    out = run_jobs(pool_job, [1, "exit", "os_exit", 2], 2, preload=(), on_lost=lambda j, why: ("lost", j, why))
+    assert time.monotonic() - t0 < LOST_BOUND_S
+    assert out[0] == 10 and out[3] == 20
+    for k, j in ((1, "exit"), (2, "os_exit")):
+        assert out[k][:2] == ("lost", j) and "worker process" in out[k][2] and "ended" in out[k][2], out[k]

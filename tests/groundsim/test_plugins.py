@@ -206,3 +206,45 @@ def test_rpekf_converges_on_perfect_bearings_from_a_manoeuvring_observer():
     e_smooth = np.linalg.norm(p_s - truth, axis=1)
     assert e_smooth[-1] == pytest.approx(e_filt[-1])  # the last step is the filter's
     assert e_smooth.mean() < 0.5 * e_filt.mean()  # the RTS pass carries the converged range back in time
+
+
+FAULTS = "tests.groundsim.plugin_faults"
+
+
+def test_an_estimator_that_calls_sys_exit_fails_its_eval_run_naming_it():
+    """SystemExit is not an Exception: it went through the run's wrapper and ended the command (or, in a pool, the
+    worker, its run never finished)."""
+    from groundsim.evaluation.eval import _job
+
+    opts = EvalOptions(duration_s=1.5, batch=False, keep_frame=False, estimator=f"{FAULTS}:ExitsOnAdd")
+    r = _job((_p1(), 0, opts, None))
+    assert r.error is not None and r.error.startswith("SystemExit in a run with estimator"), r.error
+    assert "ExitsOnAdd" in r.error
+
+
+@pytest.mark.integration
+@pytest.mark.multicore
+def test_a_campaign_on_a_pool_with_an_algorithm_that_exits_fails_those_runs_and_keeps_the_others(tmp_path):
+    from groundsim.evaluation.campaign import run_campaign
+    from groundsim.evaluation.campaign_spec import spec_from_dict
+
+    spec = spec_from_dict(
+        {
+            "name": "t",
+            "scenarios": ["P1"],
+            "noise": ["RTK"],
+            "algorithms": ["paper", f"{FAULTS}:ExitsOnAdd"],
+            "seeds": 2,
+            "duration_s": 1.0,
+        },
+        source=tmp_path / "spec.yaml",
+        spec_dir=tmp_path,
+    )
+    res = run_campaign(spec, tmp_path / "out", workers=2, progress=False)
+    assert res.ran == 4 and res.failed == 2
+    import pandas as pd
+
+    t = pd.read_csv(tmp_path / "out" / "runs.csv")
+    bad = t[t["algorithm"].str.endswith("ExitsOnAdd")]
+    assert (bad["status"] == "failed").all() and bad["error"].str.startswith("SystemExit in algorithm").all()
+    assert (t[t["algorithm"] == "paper"]["status"] == "ok").all()

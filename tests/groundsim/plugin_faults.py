@@ -1,0 +1,53 @@
+"""Misbehaving plug-ins and pool jobs for the tests of the evaluation's fault handling: each does one wrong thing
+a foreign estimator or job could do (leave the process, raise now and then), importable by name in a worker."""
+
+from __future__ import annotations
+
+import os
+import sys
+
+from onboard.pipeline.plugins import build
+
+
+def pool_job(x):
+    """``x * 10``; ``"exit"`` calls sys.exit(3), ``"os_exit"`` leaves the process at once (os._exit(4))."""
+    if x == "exit":
+        sys.exit(3)
+    if x == "os_exit":
+        os._exit(4)
+    return x * 10
+
+
+class _Wrap:
+    """Our ``paper`` estimator underneath, so that what the wrapper does not spoil is a real estimate."""
+
+    def __init__(self) -> None:
+        from onboard.app.config import OnboardConfig
+
+        self.inner = build("paper", OnboardConfig())
+        self.n_add = 0
+
+    def reset(self) -> None:
+        self.inner.reset()
+
+    def add(self, *args):
+        self.n_add += 1
+        return self.inner.add(*args)
+
+    def predict(self, t_s, p_cam_ned_m=None):
+        return self.inner.predict(t_s, p_cam_ned_m)
+
+
+class ExitsOnAdd(_Wrap):
+    def add(self, *args):
+        sys.exit(3)
+
+
+class RaisesSometimes(_Wrap):
+    """Every third ``add`` raises ValueError."""
+
+    def add(self, *args):
+        if (self.n_add + 1) % 3 == 0:
+            self.n_add += 1
+            raise ValueError(f"RaisesSometimes: add #{self.n_add} fails")
+        return super().add(*args)
