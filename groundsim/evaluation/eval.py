@@ -505,6 +505,8 @@ def run_lockstep(
                 except FrameRejected as exc:  # counted by the pipeline; the frame has no track
                     rejected += 1
                     log.debug("frame %d rejected: %s", k, exc)
+                except Exception as exc:  # noqa: BLE001 - as the daemon's loop: a plug-in's error skips one frame
+                    buffer.counter.count("pipeline_error", f"{type(exc).__name__}: {' '.join(str(exc).split())}")
         c.process_ms[k] = (time.perf_counter() - p0) * 1e3
         _, pose = source.take()
         if gd is not None and track is not None:
@@ -595,6 +597,10 @@ def run_lockstep(
                 est = baseline.predict(float(c.t_s[k]), c.cam_pose_p[k] if has_pose else None)
         except IrtrackError as exc:
             log.debug("baseline frame %d: %s", k, exc)
+        except Exception as exc:  # noqa: BLE001 - a plug-in's error, as in the pipeline: this frame has no estimate
+            buffer.counter.count(
+                "baseline_estimator_error", f"{type(exc).__name__}: {' '.join(str(exc).split())}", level=logging.DEBUG
+            )
         c.base_p_ned_m[k], c.base_cov_ned_m2[k], c.base_observable[k] = _estimate_row(est)
         c.baseline_ms[k] = (time.perf_counter() - b0) * 1e3
 

@@ -248,3 +248,20 @@ def test_a_campaign_on_a_pool_with_an_algorithm_that_exits_fails_those_runs_and_
     bad = t[t["algorithm"].str.endswith("ExitsOnAdd")]
     assert (bad["status"] == "failed").all() and bad["error"].str.startswith("SystemExit in algorithm").all()
     assert (t[t["algorithm"] == "paper"]["status"] == "ok").all()
+
+
+def test_a_plugin_exception_is_counted_per_frame_in_the_baseline_and_the_loop_not_a_failed_eval(monkeypatch):
+    """The daemon skips a frame whose pipeline raises (pipeline_error) and the pipeline counts an estimator's
+    exception; the eval's baseline and loop had let the same exceptions end the run with a traceback."""
+    from onboard.pipeline.frame_pipeline import FramePipeline
+
+    opts = dict(duration_s=1.5, batch=False, keep_frame=False)
+    r = run_lockstep(_p1(), 0, EvalOptions(**opts, estimator=f"{FAULTS}:RaisesSometimes"))
+    assert r.error is None and r.counters.get("baseline_estimator_error", 0) > 0, r.counters
+
+    def process(self, frame):  # whatever escapes the pipeline (a plug-in's error it does not catch itself)
+        raise RuntimeError("escaped the pipeline")
+
+    monkeypatch.setattr(FramePipeline, "process", process)
+    r = run_lockstep(_p1(), 0, EvalOptions(**opts))
+    assert r.error is None and r.counters.get("pipeline_error", 0) == r.frames > 0, r.counters
