@@ -86,7 +86,7 @@ from onboard.core.utc_clock import UtcClock, with_utc
 from onboard.io.record import NOT_LOOKED_UP
 from onboard.io.zenoh_session import FRAME_SCHEMA, foreign_schema, frame_key
 from onboard.pipeline.admission import ArrivalGaps
-from onboard.pipeline.frame_pipeline import FramePipeline, FrameRejected, make_tracker
+from onboard.pipeline.frame_pipeline import TRACKER_REFUSALS, FramePipeline, FrameRejected, make_tracker
 
 if TYPE_CHECKING:
     from onboard.io.gcs_link import GcsLink
@@ -739,7 +739,9 @@ class OnboardService:
             frames_dropped=dropped,
             frames_missing=missing,
             frames_rejected=sum(
-                v for k, v in counts.items() if k.startswith("frame_") and k not in ACCEPTED_FRAME_EVENTS
+                v
+                for k, v in counts.items()
+                if (k.startswith("frame_") and k not in ACCEPTED_FRAME_EVENTS) or k in TRACKER_REFUSALS
             ),
             tracks_published=published,
             processing_ms=self.pipeline.processing_ms.summary(),

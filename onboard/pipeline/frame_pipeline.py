@@ -65,7 +65,10 @@ Refused frames raise :class:`FrameRejected` (``reason``) after being counted as 
 in the shared :class:`~onboard.core.counters.RejectCounter`: ``frame_short``, ``frame_magic``,
 ``frame_version``, ``frame_encoding``, ``frame_dims``, ``frame_size``, ``frame_too_large``,
 ``frame_field`` (decode, :mod:`onboard.core.irframe`), ``frame_dims_mismatch``, ``frame_duplicate``,
-``frame_out_of_order``, ``frame_time_ahead``, ``frame_time_behind``, ``frame_image``.  Notable accepted
+``frame_out_of_order``, ``frame_time_ahead``, ``frame_time_behind``, ``frame_image`` (the tracker refused the
+frame's pixels); and, the tracker at fault, not the frame, ``tracker_error`` (``update`` raised) and
+``tracker_output_invalid`` (its answer is no track update: None, a centre or box not finite, a negative box size, a
+track id below 1, an unknown state; :func:`tracker_problem`).  Notable accepted
 events: ``frame_time_reset``, ``frame_sequence_reset``, ``frame_stream_restart``, ``frame_encoding_changed`` (INFO: mono8
 and mono16 alternating, a camera's mode or a second publisher), ``estimator_pose_reset``
 (step 4).  Estimator problems never refuse a frame: they are counted as ``estimator_input`` (it refused its
@@ -91,7 +94,7 @@ from onboard.core.frames import GeodeticOrigin, PinholeIntrinsics, geodetic_from
 from onboard.core.irframe import ENCODING_MONO8, ENCODING_MONO16, IrFrame, IrFrameError, decode_irframe
 from onboard.core.pose_types import PoseAt
 from onboard.core.status import RollingStats
-from onboard.core.track import LineOfSight, Track, line_of_sight_ned
+from onboard.core.track import TRACK_STATES, LineOfSight, Track, line_of_sight_ned
 from onboard.estimation.map_estimator import across_range_widened
 from onboard.estimation.time_offset import TimeOffsetEstimate, TimeOffsetEstimator
 from onboard.pipeline.admission import FrameAdmission
@@ -104,6 +107,8 @@ __all__ = [
     "Estimator",
     "FramePipeline",
     "estimate_problem",
+    "tracker_problem",
+    "TRACKER_REFUSALS",
     "make_estimator",
     "make_tracker",
 ]
@@ -121,6 +126,8 @@ COMPENSATION_REBUILD_MS = 0.5
 #: an estimator without ``rebuild`` is restarted instead, which loses its window: only beyond this (50 ms at 0.1 rad/s
 #: of camera rotation: 5 mrad, ten times the noise)
 COMPENSATION_RESTART_MS = 10.0
+#: counter keys of frames refused for their tracker's fault (:meth:`FramePipeline.process`), not the frame's
+TRACKER_REFUSALS = ("tracker_output_invalid", "tracker_error")
 
 
 class FrameRejected(InputError):
@@ -239,6 +246,41 @@ def estimate_problem(est: Any) -> str | None:
         return f"no {exc.name or 'field'} (a {type(est).__name__})"
     except TypeError as exc:  # an array of objects: no finiteness to test
         return f"{type(exc).__name__}: {exc}"
+    return None
+
+
+def _finite_real(x: Any) -> bool:
+    return _real(x) and math.isfinite(x)
+
+
+def tracker_problem(upd: Any) -> str | None:
+    """What is wrong with a tracker's answer (:class:`onboard.imaging.TrackUpdate`'s fields, as the pipeline reads
+    them), None when nothing: a state of ``TRACK_STATES``, a track id None or >= 1, a centre None or finite (required
+    by ``measurement_valid``), a box None or four finite numbers with a size >= 0."""
+    if upd is None:
+        return "update returned None"
+    try:
+        state = upd.state
+        if getattr(state, "value", state) not in TRACK_STATES:
+            return f"state must be one of {', '.join(TRACK_STATES)}, got {state!r}"
+        tid = upd.track_id
+        if tid is not None and (isinstance(tid, (bool, np.bool_)) or not isinstance(tid, (int, np.integer)) or tid < 1):
+            return f"track_id must be None or an integer >= 1, got {tid!r}"
+        valid = upd.measurement_valid
+        if not isinstance(valid, (bool, np.bool_)):
+            return f"measurement_valid must be a bool, got {valid!r}"
+        u, v = upd.u_px, upd.v_px
+        if u is None and v is None:
+            if valid:
+                return "measurement_valid without a centre (u_px, v_px)"
+        elif not (_finite_real(u) and _finite_real(v)):
+            return f"the centre (u_px, v_px) must be two finite numbers or None, got ({u!r}, {v!r})"
+        box = upd.bbox
+        if box is not None:
+            if _shape(box) != (4,) or not all(_finite_real(c) for c in box) or box[2] < 0 or box[3] < 0:
+                return f"bbox must be None or four finite numbers (x, y, w, h) with w, h >= 0, got {box!r}"
+    except AttributeError as exc:
+        return f"no {exc.name or 'field'} (a {type(upd).__name__})"
     return None
 
 
@@ -492,6 +534,11 @@ class FramePipeline:
                 upd = self.tracker.update(frame.pixels)
         except InputError as exc:
             self._refuse("image", f"tracker refused the frame: {exc}")
+        except Exception as exc:  # noqa: BLE001 - a tracker bug costs its frame, never the frame loop
+            self._refuse_tracker("tracker_error", f"{type(self.tracker).__name__}: {type(exc).__name__}: {exc}")
+        problem = tracker_problem(upd)
+        if problem is not None:  # everything below reads it unguarded
+            self._refuse_tracker("tracker_output_invalid", f"{type(self.tracker).__name__}: {problem}")
         self.imaging_ms.add((self._clock_ns() - i0 - waited_ns) / 1e6)
         state = upd.state.value if hasattr(upd.state, "value") else str(upd.state)
 
@@ -554,6 +601,13 @@ class FramePipeline:
     def _refuse(self, reason: str, message: str) -> NoReturn:
         self.frames_rejected += 1
         self.counter.count(f"frame_{reason}", message)
+        raise FrameRejected(reason, message)
+
+    def _refuse_tracker(self, reason: str, message: str) -> NoReturn:
+        """Refuse a frame the tracker failed on: counted under ``reason`` itself (not a ``frame_`` key: the frame was
+        fine), raised as :class:`FrameRejected` with that reason."""
+        self.frames_rejected += 1
+        self.counter.count(reason, message)
         raise FrameRejected(reason, message)
 
     def _admit(self, frame: IrFrame) -> None:

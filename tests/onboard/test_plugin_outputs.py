@@ -12,6 +12,7 @@ import pytest
 
 from onboard.core.errors import InputError
 from onboard.estimation.map_estimator import across_range_widened
+from onboard.pipeline.frame_pipeline import FrameRejected
 from tests.fakes import positioned_track
 from tests.onboard.test_pipeline import FakeEstimator, Rig
 
@@ -143,3 +144,57 @@ def test_an_estimate_of_lists_and_numpy_scalars_is_read_as_one_of_arrays():
     tracks = rig.run(FRAMES)
     assert all(tr.p_ned_m is not None for tr in tracks[9:])
     assert rig.counter["estimator_output_invalid"] == 0
+
+
+# --------------------------------------------------------------------------- tracker answers
+
+
+class SpoiltTracker:
+    """The rig's image chain whose updates are passed through ``spoil`` (which may raise)."""
+
+    def __init__(self, inner, spoil):
+        self.inner = inner
+        self.spoil = spoil
+
+    def update(self, pixels):
+        return self.spoil(self.inner.update(pixels))
+
+
+def _raise(exc):
+    raise exc
+
+
+@pytest.mark.parametrize(
+    "spoil, reason, what",
+    [
+        (lambda upd: None, "tracker_output_invalid", "update returned None"),
+        (lambda upd: {"u_px": 1.0, "v_px": 2.0}, "tracker_output_invalid", "no state (a dict)"),
+        (lambda upd: dataclasses.replace(upd, u_px=float("nan")), "tracker_output_invalid", "centre"),
+        (lambda upd: dataclasses.replace(upd, v_px=float("inf")), "tracker_output_invalid", "centre"),
+        (lambda upd: dataclasses.replace(upd, bbox=(10.0, 10.0, -5.0, 5.0)), "tracker_output_invalid", "bbox"),
+        (lambda upd: dataclasses.replace(upd, bbox=(np.nan, 10.0, 5.0, 5.0)), "tracker_output_invalid", "bbox"),
+        (lambda upd: dataclasses.replace(upd, bbox=(1.0, 2.0)), "tracker_output_invalid", "bbox"),
+        (lambda upd: dataclasses.replace(upd, track_id=0), "tracker_output_invalid", "track_id"),
+        (
+            lambda upd: SimpleNamespace(**{**dataclasses.asdict(upd), "state": "flying"}),
+            "tracker_output_invalid",
+            "state must be one of",
+        ),
+        (lambda upd: _raise(RuntimeError("kcf lost its mind")), "tracker_error", "RuntimeError: kcf lost its mind"),
+    ],
+)
+def test_a_tracker_answer_the_pipeline_cannot_read_refuses_the_frame_counted_naming_the_tracker(
+    spoil, reason, what, caplog
+):
+    rig = Rig(estimator=None)
+    rig.pipe.tracker = SpoiltTracker(rig.pipe.tracker, spoil)
+    with caplog.at_level(logging.WARNING):
+        for k in range(3):
+            with pytest.raises(FrameRejected) as info:
+                rig.step(k)
+            assert info.value.reason == reason
+    assert rig.counter[reason] == 3 and rig.pipe.frames_rejected == 3
+    lines = [r.getMessage() for r in caplog.records if reason in r.getMessage()]
+    assert len(lines) == 1 and "SpoiltTracker" in lines[0] and what in lines[0]
+    rig.pipe.tracker = rig.pipe.tracker.inner  # the loop goes on: the next good answer is a track
+    assert rig.step(3).state == "tracking"
