@@ -206,8 +206,15 @@ def load_factory(name: str, group: str = ESTIMATORS, option: str = "--estimator"
 
 
 def build(name: str, config, group: str = ESTIMATORS, option: str = "--estimator"):
-    """The instance ``load_factory(name, group)(config)``, checked against the group's protocol."""
-    inst = load_factory(name, group, option)(config)
+    """The instance ``load_factory(name, group)(config)``, checked against the group's protocol.  A factory that
+    raises (a plug-in's ``__init__``, an import inside it) is a :class:`ConfigError` naming ``option`` and ``name``."""
+    factory = load_factory(name, group, option)
+    try:
+        inst = factory(config)
+    except ConfigError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - a plug-in that cannot be built is a configuration error, one line
+        raise ConfigError(f"{option} {name}: {type(exc).__name__}: {exc}") from None
     proto = _PROTOCOL[group]
     if not isinstance(inst, proto):
         missing = [
