@@ -641,7 +641,9 @@ class FramePipeline:
             try:
                 self.estimator.reset()
             except Exception as exc:  # noqa: BLE001
-                self.counter.count("estimator_error", f"reset: {type(exc).__name__}: {exc}")
+                self.counter.count(
+                    "estimator_error", f"{type(self.estimator).__name__}.reset: {type(exc).__name__}: {exc}"
+                )
             self.estimator_resets += 1
             log.info("estimator reset: %s", why)
         self._est_has_data = False
@@ -689,7 +691,7 @@ class FramePipeline:
         except InputError as exc:
             self.counter.count("estimator_input", str(exc))
         except Exception as exc:  # noqa: BLE001 - the estimator must never stop the frame loop
-            self.counter.count("estimator_error", f"{type(exc).__name__}: {exc}")
+            self.counter.count("estimator_error", f"{type(self.estimator).__name__}: {type(exc).__name__}: {exc}")
         return None
 
     def _checked(self, est):
@@ -793,7 +795,10 @@ class FramePipeline:
         try:
             est = rebuild(rows)
         except Exception as exc:  # noqa: BLE001 - a failed rebuild costs the window, never the frame loop
-            self.counter.count("estimator_error", f"rebuild at a new clock compensation: {type(exc).__name__}: {exc}")
+            self.counter.count(
+                "estimator_error",
+                f"{type(self.estimator).__name__}.rebuild at a new clock compensation: {type(exc).__name__}: {exc}",
+            )
             return False
         kept = {int(t_us[i]) for i in np.flatnonzero(ok)}
         self._window_rows = collections.deque(r for r in self._window_rows if r[0] in kept)

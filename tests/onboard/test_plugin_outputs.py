@@ -198,3 +198,12 @@ def test_a_tracker_answer_the_pipeline_cannot_read_refuses_the_frame_counted_nam
     assert len(lines) == 1 and "SpoiltTracker" in lines[0] and what in lines[0]
     rig.pipe.tracker = rig.pipe.tracker.inner  # the loop goes on: the next good answer is a track
     assert rig.step(3).state == "tracking"
+
+
+def test_an_estimator_that_raises_is_counted_naming_the_estimator_and_the_exception(caplog):
+    rig = Rig(fail=True)
+    with caplog.at_level(logging.WARNING):
+        tracks = rig.run(3)
+    assert all(tr.p_ned_m is None for tr in tracks) and rig.counter["estimator_error"] == 3
+    lines = [r.getMessage() for r in caplog.records if "estimator_error" in r.getMessage()]
+    assert len(lines) == 1 and "estimator_error: FakeEstimator: RuntimeError: boom" in lines[0]
