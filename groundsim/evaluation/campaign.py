@@ -399,6 +399,10 @@ def _run_synthetic(job: Job) -> list[dict]:
     c0 = time.perf_counter()
     t = _frame_times(sc, p0.duration_s)
     truth, obs = synthesize_scenario(sc, noise, seed, t_s=t)
+    # every algorithm of the case reads the same observations: read-only, so that one writing into its inputs
+    # fails its own frames and cannot move the next algorithm's row
+    for a in (obs.t_s, obs.uv_px, obs.p_cam_ned_m, obs.q_ned_from_cam):
+        a.setflags(write=False)
     cfg = _assumed_config(onboard_config_for(sc, job.base_config), noise, p0.noise_model)
     case = geometry_figures(sc, seed, t)
     case.update(_case_bound(cfg, obs, truth) if p0.crb else {})
@@ -414,7 +418,8 @@ def _run_synthetic(job: Job) -> list[dict]:
             est = build(params.algorithm, cfg, option="algorithms")
             for k in range(F):
                 try:
-                    e = est.add(float(obs.t_s[k]), obs.uv_px[k], K, obs.p_cam_ned_m[k], obs.q_ned_from_cam[k])
+                    uv = (float(obs.uv_px[k, 0]), float(obs.uv_px[k, 1]))  # a tuple, as the pipeline passes it
+                    e = est.add(float(obs.t_s[k]), uv, K, obs.p_cam_ned_m[k], obs.q_ned_from_cam[k])
                 except Exception as exc:  # noqa: BLE001 - as the pipeline: the frame goes on without 3-D
                     errors += 1
                     first_error = first_error or f"{type(exc).__name__}: {' '.join(str(exc).split())}"

@@ -579,15 +579,20 @@ def run_lockstep(
     else:
         base_sigma_px = DEFAULT_PIXEL_SIGMA_PX if chain_sigma_px is None else chain_sigma_px
     base_has_data = False
+    # the baseline gets rows of the poses the batch and the scores read after it: read-only, so that a plug-in
+    # writing into its inputs fails its own frame and cannot move the other figures
+    c.cam_pose_p.setflags(write=False)
+    c.cam_pose_q.setflags(write=False)
     for k in range(F):
         b0 = time.perf_counter()
         has_pose = bool(np.all(np.isfinite(c.cam_pose_p[k])))
         est = None
         try:
             if has_pose and c.visible[k]:
+                uv = c.truth_uv_px[k] + base_sigma_px * c.unit_noise[k]
                 est = baseline.add(
                     float(c.t_s[k]),
-                    c.truth_uv_px[k] + base_sigma_px * c.unit_noise[k],
+                    (float(uv[0]), float(uv[1])),  # a tuple, as the pipeline passes it
                     K,
                     c.cam_pose_p[k],
                     c.cam_pose_q[k],

@@ -51,3 +51,25 @@ class RaisesSometimes(_Wrap):
             self.n_add += 1
             raise ValueError(f"RaisesSometimes: add #{self.n_add} fails")
         return super().add(*args)
+
+
+class WritesInputs(_Wrap):
+    """Moves the pixel and the camera position it is given by 1000 (where it can) before estimating; records
+    whether each camera position it got was writable (``seen_writable``, per instance, the last one built in
+    ``instances[-1]``)."""
+
+    instances: list[WritesInputs] = []
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.seen_writable: list[bool] = []
+        WritesInputs.instances.append(self)
+
+    def add(self, t_s, uv_px, intrinsics, p_cam_ned_m, q_ned_from_cam):
+        self.seen_writable.append(bool(getattr(p_cam_ned_m, "flags", None) and p_cam_ned_m.flags.writeable))
+        for a in (uv_px, p_cam_ned_m):
+            try:
+                a[0] += 1000.0
+            except (TypeError, ValueError):  # a tuple, a read-only array: as it should be
+                pass
+        return super().add(t_s, uv_px, intrinsics, p_cam_ned_m, q_ned_from_cam)

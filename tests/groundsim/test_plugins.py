@@ -265,3 +265,36 @@ def test_a_plugin_exception_is_counted_per_frame_in_the_baseline_and_the_loop_no
     monkeypatch.setattr(FramePipeline, "process", process)
     r = run_lockstep(_p1(), 0, EvalOptions(**opts))
     assert r.error is None and r.counters.get("pipeline_error", 0) == r.frames > 0, r.counters
+
+
+def test_an_algorithm_writing_into_its_inputs_cannot_move_the_next_ones_campaign_row(tmp_path):
+    """The algorithms of a synthetic case share its observations: one that wrote into them (a plug-in) had moved
+    the pixels and camera positions the next algorithm read (map's row: all estimator errors, nothing published)."""
+    from groundsim.evaluation.campaign import run_campaign
+    from groundsim.evaluation.campaign_spec import spec_from_dict
+
+    def paper_row(algorithms, out):
+        d = {"name": "t", "scenarios": ["P1"], "noise": ["RTK"], "algorithms": algorithms, "seeds": 1}
+        spec = spec_from_dict({**d, "duration_s": 1.0}, source=tmp_path / "spec.yaml", spec_dir=tmp_path)
+        run_campaign(spec, tmp_path / out, workers=1, progress=False)
+        import pandas as pd
+
+        t = pd.read_csv(tmp_path / out / "runs.csv")
+        return t[t["algorithm"] == "paper"].iloc[0]
+
+    alone = paper_row(["paper"], "alone")
+    after = paper_row([f"{FAULTS}:WritesInputs", "paper"], "after")
+    assert after["status"] == "ok" and after["estimator_errors"] == alone["estimator_errors"] == 0
+    assert alone["published_frames"] > 0
+    for col in ("published_frames", "err_range_published_settled_pct", "rmse_published_settled_m"):
+        assert after[col] == alone[col] or (math.isnan(after[col]) and math.isnan(alone[col])), col
+
+
+def test_the_eval_baseline_gets_read_only_camera_poses():
+    """The baseline's camera positions are rows of the poses the batch and the scores read after it."""
+    from tests.groundsim.plugin_faults import WritesInputs
+
+    opts = EvalOptions(duration_s=1.5, batch=False, keep_frame=False, estimator=f"{FAULTS}:WritesInputs")
+    r = run_lockstep(_p1(), 0, opts)
+    baseline = WritesInputs.instances[-1]
+    assert r.error is None and baseline.seen_writable and not any(baseline.seen_writable)
