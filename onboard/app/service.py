@@ -86,7 +86,13 @@ from onboard.core.utc_clock import UtcClock, with_utc
 from onboard.io.record import NOT_LOOKED_UP
 from onboard.io.zenoh_session import FRAME_SCHEMA, foreign_schema, frame_key
 from onboard.pipeline.admission import ArrivalGaps
-from onboard.pipeline.frame_pipeline import TRACKER_REFUSALS, FramePipeline, FrameRejected, make_tracker
+from onboard.pipeline.frame_pipeline import (
+    ACCEPTED_FRAME_EVENTS,
+    TRACKER_REFUSALS,
+    FramePipeline,
+    FrameRejected,
+    make_tracker,
+)
 
 if TYPE_CHECKING:
     from onboard.io.gcs_link import GcsLink
@@ -102,7 +108,6 @@ MIN_TAP_CLOSE_S = 0.1
 MAIN_LOOP_MAX_IDLE_S = 0.05  # the main loop's longest sleep without input (stop requests, timers it cannot see)
 #: ``frame_*`` counter keys that are accepted events, not refusals
 MISMATCH_WARNINGS = frozenset({"gimbal_mismatch", "camera_mismatch"})
-ACCEPTED_FRAME_EVENTS = frozenset({"frame_time_reset", "frame_sequence_reset", "frame_stream_restart"})
 
 
 class OnboardService:

@@ -109,6 +109,7 @@ __all__ = [
     "estimate_problem",
     "tracker_problem",
     "TRACKER_REFUSALS",
+    "ACCEPTED_FRAME_EVENTS",
     "make_estimator",
     "make_tracker",
 ]
@@ -128,6 +129,11 @@ COMPENSATION_REBUILD_MS = 0.5
 COMPENSATION_RESTART_MS = 10.0
 #: counter keys of frames refused for their tracker's fault (:meth:`FramePipeline.process`), not the frame's
 TRACKER_REFUSALS = ("tracker_output_invalid", "tracker_error")
+#: ``frame_*`` counter keys of events on frames that were taken (module docstring), not refusals: the status's
+#: ``frames.rejected`` sums every other ``frame_*`` key
+ACCEPTED_FRAME_EVENTS = frozenset(
+    {"frame_time_reset", "frame_sequence_reset", "frame_stream_restart", "frame_encoding_changed"}
+)
 
 
 class FrameRejected(InputError):

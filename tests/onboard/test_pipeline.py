@@ -338,6 +338,11 @@ def test_a_change_of_encoding_mid_stream_is_counted_once_per_change():
     rig.pipe.process(IrFrame(seq=wide.seq, time_boot_us=wide.time_boot_us, pixels=wide.pixels.astype(np.uint16) * 257))
     rig.step(4)
     assert rig.counter.counts.get("frame_encoding_changed") == 2  # mono8 -> mono16 -> mono8
+    # every frame was taken: none of the frame_* keys counted is a refusal (the status's frames.rejected counted
+    # these changes as refused frames)
+    from onboard.pipeline.frame_pipeline import ACCEPTED_FRAME_EVENTS
+
+    assert {k for k in rig.counter.counts if k.startswith("frame_")} <= ACCEPTED_FRAME_EVENTS
 
 
 def test_duplicate_and_out_of_order_frames_are_refused():
