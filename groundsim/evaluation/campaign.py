@@ -426,9 +426,18 @@ def _run_synthetic(job: Job) -> list[dict]:
                     continue
                 if e is None:
                     continue
-                p, P = np.asarray(e.p_ned_m, dtype=float), np.asarray(e.cov_p_ned_m2, dtype=float)
-                if p.shape == (3,) and P.shape == (3, 3) and np.all(np.isfinite(p)) and np.all(np.isfinite(P)):
-                    est_p[k], est_P[k], observable[k] = p, P, bool(e.observable)
+                try:
+                    p, P = np.asarray(e.p_ned_m, dtype=float), np.asarray(e.cov_p_ned_m2, dtype=float)
+                    bad = "" if p.shape == (3,) and P.shape == (3, 3) else f"position {p.shape}, covariance {P.shape}"
+                    if not bad and not (np.all(np.isfinite(p)) and np.all(np.isfinite(P))):
+                        bad = "a position or covariance that is not finite"
+                    if not bad:
+                        est_p[k], est_P[k], observable[k] = p, P, bool(e.observable)
+                except Exception as exc:  # noqa: BLE001 - an estimate without the protocol's fields or numbers
+                    bad = f"{type(exc).__name__}: {' '.join(str(exc).split())}"
+                if bad:  # the pipeline does not publish such an estimate, and counts it: so does the row
+                    errors += 1
+                    first_error = first_error or f"invalid estimate: {bad}"
         except KeyboardInterrupt:
             raise
         except BaseException as exc:  # noqa: BLE001 - a plug-in that cannot be built or exits fails its runs alone
@@ -450,6 +459,16 @@ def _failed_row(params, exc: BaseException, w0: float, case: dict | None = None)
     time."""
     error = f"{type(exc).__name__} in algorithm {params.algorithm}: {' '.join(str(exc).split())}"
     return _row(params, {**(case or {}), "status": "failed", "error": error, "wall_s": time.perf_counter() - w0})
+
+
+#: a closed-loop run's counters of the estimator's frames that gave no estimate because it failed: raised, was refused
+#: its inputs, gave an estimate not fit to publish (the pipeline's), or raised in the perfect-centroid baseline
+ESTIMATOR_ERROR_COUNTERS = (
+    "estimator_error",
+    "estimator_input",
+    "estimator_output_invalid",
+    "baseline_estimator_error",
+)
 
 
 def _run_closed_loop(job: Job) -> list[dict]:
@@ -494,8 +513,8 @@ def _run_closed_loop(job: Job) -> list[dict]:
             published_share_after_3s=s["closed_loop"]["published_share_after_3s"],
             chain_centroid_sigma_px=s.get("chain_centroid_sigma_px"),
             status="ok",
-            error="",
-            estimator_errors=0,
+            error=", ".join(f"{k} {r.counters[k]}" for k in ESTIMATOR_ERROR_COUNTERS if r.counters.get(k)),
+            estimator_errors=sum(int(r.counters.get(k, 0)) for k in ESTIMATOR_ERROR_COUNTERS),
             wall_s=time.perf_counter() - w0,
         )
         rows.append(_row(params, m))

@@ -73,3 +73,13 @@ class WritesInputs(_Wrap):
             except (TypeError, ValueError):  # a tuple, a read-only array: as it should be
                 pass
         return super().add(t_s, uv_px, intrinsics, p_cam_ned_m, q_ned_from_cam)
+
+
+class NanPosition(_Wrap):
+    """Its estimates, when it has one, with a NaN position."""
+
+    def add(self, *args):
+        from types import SimpleNamespace
+
+        e = super().add(*args)
+        return None if e is None else SimpleNamespace(**{**vars(e), "p_ned_m": [float("nan")] * 3})

@@ -298,3 +298,26 @@ def test_the_eval_baseline_gets_read_only_camera_poses():
     r = run_lockstep(_p1(), 0, opts)
     baseline = WritesInputs.instances[-1]
     assert r.error is None and baseline.seen_writable and not any(baseline.seen_writable)
+
+
+@pytest.mark.parametrize(
+    "mode, algorithm, counted",
+    [("synthetic", "NanPosition", "invalid estimate: "), ("closed_loop", "RaisesSometimes", "estimator_error ")],
+)
+def test_a_campaign_row_counts_the_estimator_errors(tmp_path, mode, algorithm, counted):
+    """A synthetic row dropped an estimate that was not finite without a word; a closed-loop row said 0 errors
+    whatever the run's counters held."""
+    import pandas as pd
+
+    from groundsim.evaluation.campaign import run_campaign
+    from groundsim.evaluation.campaign_spec import spec_from_dict
+
+    d = {"name": "t", "mode": mode, "scenarios": ["P1"], "noise": ["RTK"], "seeds": 1, "crb": False}
+    spec = spec_from_dict(
+        {**d, "algorithms": [f"{FAULTS}:{algorithm}"], "duration_s": 1.5},
+        source=tmp_path / "spec.yaml",
+        spec_dir=tmp_path,
+    )
+    run_campaign(spec, tmp_path / "out", workers=1, progress=False)
+    row = pd.read_csv(tmp_path / "out" / "runs.csv").iloc[0]
+    assert row["status"] == "ok" and row["estimator_errors"] > 0 and row["error"].startswith(counted), dict(row)
