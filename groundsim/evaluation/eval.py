@@ -378,7 +378,7 @@ def run_lockstep(
     Raises IrtrackError for a bad scenario/option; the caller decides whether a run may fail alone.
     """
     from groundsim.evaluation.lockstep_guidance import LockstepGuidance
-    from groundsim.evaluation.mot import PerceptionScore, gt_rows, tracker_positions, tracker_rows
+    from groundsim.evaluation.mot import PerceptionScore, gt_rows, tracker_positions, tracker_rows, unscorable_objects
     from groundsim.world.sim import SimCore
     from onboard.core.irframe import IrFrame
     from onboard.core.pose import PoseBuffer
@@ -458,6 +458,7 @@ def run_lockstep(
     mot_gt: list[str] = []
     mot_tracker: list[str] = []
     perception = PerceptionScore(scenario.frame_rate_hz)
+    unscorable = 0  # tracked objects the MOT file leaves out (a centre not a finite number)
 
     n_done = F
     for k in range(F):
@@ -538,6 +539,7 @@ def run_lockstep(
         mot_gt += gt_rows(k + 1, fr.labels, (tr.target_u_px, tr.target_v_px), bool(tr.target_visible))
         if track is not None:
             mot_tracker += tracker_rows(k + 1, getattr(pipeline.tracker, "last_objects", None), track)
+            unscorable += unscorable_objects(getattr(pipeline.tracker, "last_objects", None), track)
         perception.add(
             [(o.object_id, o.u_px, o.v_px, o.visibility == "visible", o.contrast_netd) for o in fr.labels]
             if fr.labels
@@ -647,6 +649,8 @@ def run_lockstep(
     tracker = pipeline.tracker
     counters = dict(buffer.counter.counts)
     counters.update(frames_rejected=rejected, estimator_resets=pipeline.estimator_resets)
+    if unscorable:
+        counters["objects_not_finite"] = unscorable
     # the single chain's own counters; the objects chain has none of them (a 0 would read as a measurement)
     counters.update({k: getattr(tracker, k) for k in ("kcf_reseeds", "reacquisitions") if hasattr(tracker, k)})
     return RunResult(

@@ -43,6 +43,7 @@ __all__ = [
     "clear_mot",
     "PerceptionScore",
     "tracker_positions",
+    "unscorable_objects",
     "nearest_within",
     "format_perception",
     "format_mot_scores",
@@ -87,14 +88,26 @@ def _gt_row(frame: int, mot_id: int, u: float, v: float, visible: bool) -> str:
     return f"{frame},{mot_id},{square_box(u, v)},0,{HIDDEN_CLASS},0.0\n"
 
 
-def _tracked(objects=None, track=None) -> list[tuple[int, float, float, float | None]]:
-    """``(id, u, v, score)`` of what the pipeline tracks on one frame: ``objects`` an ObjectsUpdate (its confirmed
-    objects), else ``track`` (a Track: itself while tracking; score None)."""
+def _tracked_all(objects=None, track=None) -> list[tuple[int, float, float, float | None]]:
     if objects is not None:
         return [(o.object_id, o.u_px, o.v_px, o.score) for o in objects.confirmed]
     if track is not None and track.state == "tracking" and track.u_px is not None and track.track_id is not None:
         return [(track.track_id, track.u_px, track.v_px, None)]
     return []
+
+
+def _tracked(objects=None, track=None) -> list[tuple[int, float, float, float | None]]:
+    """``(id, u, v, score)`` of what the pipeline tracks on one frame: ``objects`` an ObjectsUpdate (its confirmed
+    objects), else ``track`` (a Track: itself while tracking; score None).  An object whose centre is not a finite
+    number is left out (:func:`unscorable_objects` counts them): a NaN in the tracker file made TrackEval refuse the
+    whole sequence, its HOTA lost."""
+    return [t for t in _tracked_all(objects, track) if math.isfinite(t[1]) and math.isfinite(t[2])]
+
+
+def unscorable_objects(objects=None, track=None) -> int:
+    """How many of one frame's tracked objects :func:`tracker_rows` leaves out (a centre not a finite number)."""
+    every = _tracked_all(objects, track)
+    return len(every) - sum(1 for t in every if math.isfinite(t[1]) and math.isfinite(t[2]))
 
 
 def tracker_rows(frame: int, objects=None, track=None) -> list[str]:

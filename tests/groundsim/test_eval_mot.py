@@ -47,6 +47,28 @@ def test_tracker_rows_from_objects_or_the_single_track():
     assert tracker_rows(4, None, SimpleNamespace(state="coasting", u_px=1.0, v_px=1.0, track_id=2)) == []
 
 
+def test_objects_whose_centre_is_not_finite_are_left_out_of_the_tracker_file_and_counted(tmp_path):
+    """A tracker's objects with NaN or infinite centres: the MOT lines hold the finite ones only, the others are
+    counted, and TrackEval scores the sequence (a NaN line made it refuse the whole sequence: 'matrix contains
+    invalid numeric entries', its HOTA lost)."""
+    from groundsim.evaluation.mot import score_mot, unscorable_objects
+
+    def objs(*uv):
+        return SimpleNamespace(
+            confirmed=tuple(SimpleNamespace(object_id=i + 1, u_px=u, v_px=v, score=1.0) for i, (u, v) in enumerate(uv))
+        )
+
+    frame = objs((100.0, 50.0), (math.nan, 50.0), (100.0, math.inf))
+    assert [line.split(",")[1] for line in tracker_rows(1, frame)] == ["1"]
+    assert unscorable_objects(frame) == 2 and unscorable_objects(objs((1.0, 2.0))) == 0
+    pytest.importorskip("trackeval")
+    gt = "".join(gt_rows(1, [_label(0, 100.0, 50.0)]) + gt_rows(2, [_label(0, 100.0, 50.0)]))
+    trk = "".join(tracker_rows(1, frame) + tracker_rows(2, frame))
+    run = SimpleNamespace(scenario="S", nav_noise="RTK", seed=0, frames=2, error=None, mot_gt=gt, mot_tracker=trk)
+    seqs = write_mot(tmp_path, [run], {"S": (640, 512, 30.0)})
+    assert score_mot(tmp_path, seqs)[seqs[0]]["HOTA"] == pytest.approx(1.0)
+
+
 def test_write_mot_layout_and_trackeval_scores_a_perfect_tracker(tmp_path, capsys):
     gt = "".join("".join(gt_rows(k, [_label(0, 100.0 + k, 50.0), _label(1, 200.0, 80.0 - k)])) for k in range(1, 31))
     objects = [
