@@ -300,8 +300,9 @@ class RunConfig:
         if u is not None and (isinstance(u, bool) or not isinstance(u, int) or not 0 <= u < 2**62):
             raise ConfigError(f"RunConfig.start_time_unix_us must be a UNIX time in us or None, got {u!r}")
         object.__setattr__(self, "run_seed", check_run_seed(self.run_seed))
-        if self.gimbal_frame not in ("earth", "vehicle"):
-            raise ConfigError(f"--gimbal-frame: expected earth or vehicle, got {self.gimbal_frame!r}")
+        from groundsim.io.mavlink_vehicle import check_gimbal_frame
+
+        check_gimbal_frame(self.gimbal_frame)
         object.__setattr__(self, "duration_s", check_duration_s(self.duration_s, sc))
         object.__setattr__(self, "scenario", extend_scenario(sc, self.duration_s))
         if not isinstance(self.rate, RateSpec):

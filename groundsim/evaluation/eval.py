@@ -147,8 +147,9 @@ class EvalOptions:
     gimbal_frame: str = "earth"
 
     def __post_init__(self) -> None:
-        if self.gimbal_frame not in ("earth", "vehicle"):
-            raise ConfigError(f"--gimbal-frame: expected earth or vehicle, got {self.gimbal_frame!r}")
+        from groundsim.io.mavlink_vehicle import check_gimbal_frame
+
+        check_gimbal_frame(self.gimbal_frame)
         d = self.duration_s
         if d is not None and (isinstance(d, bool) or not isinstance(d, (int, float)) or not math.isfinite(d) or d <= 0):
             raise ConfigError(f"--duration: expected a positive number of seconds, got {d!r}")

@@ -161,6 +161,7 @@ __all__ = [
     "MavlinkVehicle",
     "open_mavlink2",
     "GIMBAL_FRAMES",
+    "check_gimbal_frame",
     "gimbal_device_attitude_status",
 ]
 
@@ -261,6 +262,13 @@ ARDUPILOT_GIMBAL_FLAGS = (
     | mavlink2.GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME
     | mavlink2.GIMBAL_DEVICE_FLAGS_YAW_LOCK
 )
+
+
+def check_gimbal_frame(frame: str, option: str = "--gimbal-frame") -> str:
+    """``frame`` if it is one of :data:`GIMBAL_FRAMES`, else a ConfigError naming ``option``."""
+    if frame not in GIMBAL_FRAMES:
+        raise ConfigError(f"{option}: expected {' or '.join(GIMBAL_FRAMES)}, got {frame!r}")
+    return frame
 
 
 def gimbal_device_attitude_status(
