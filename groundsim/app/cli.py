@@ -87,6 +87,18 @@ def _workers_option(p: argparse.ArgumentParser, help_text: str) -> None:
     p.add_argument("--workers", type=int, default=None, metavar="N", help=help_text)
 
 
+def _run_timeout_option(p: argparse.ArgumentParser, per: str, unenforced: str = "with --workers 1") -> None:
+    p.add_argument(
+        "--run-timeout",
+        type=float,
+        default=None,
+        metavar="S",
+        help=f"wall-clock deadline per {per}, seconds: one still running then (a plug-in that hangs) has its worker"
+        " process killed and fails (default: 20 x its simulated seconds + 120 s); needs a pool (2+ workers):"
+        f" {unenforced} it is not enforced",
+    )
+
+
 def _onboard_config_option(p: argparse.ArgumentParser, default: str | None, help_text: str) -> None:
     p.add_argument("--onboard-config", default=default, metavar="FILE", help=help_text)
 
@@ -455,6 +467,7 @@ def _add_eval(p: argparse.ArgumentParser) -> None:
     _duration_option(
         p, "simulated seconds per run (default: the scenario's duration_s; longer continues its scripted motions)"
     )
+    _run_timeout_option(p, "run")
     p.add_argument(
         "--pixel-sigma",
         type=float,
@@ -594,6 +607,9 @@ def _add_campaign(p: argparse.ArgumentParser) -> None:
         "redone (default: out/campaigns/<name>)",
     )
     _workers_option(p, "worker processes, 1 = in this process (default: the spec's workers, else min(2, CPUs))")
+    _run_timeout_option(
+        p, "case (its algorithms' runs together: the default is per run, summed)", "with --workers 1 or --scheduler"
+    )
     p.add_argument(
         "--scheduler",
         default=None,

@@ -18,7 +18,7 @@ from groundsim.evaluation.eval import (
 )
 from groundsim.evaluation.mot import write_mot
 from groundsim.evaluation.out_dir import make_out_dir, refuse_foreign_out
-from groundsim.evaluation.parallel import limit_blas_threads, pool_workers, quiet_run_logs
+from groundsim.evaluation.parallel import check_run_timeout, limit_blas_threads, pool_workers, quiet_run_logs
 from groundsim.evaluation.report import SCHEMA, holds_eval_report
 from groundsim.evaluation.scoring import format_gnss_dropout
 from groundsim.io.stop_signals import finish_despite_signals, print_interrupted, sigterm_as_ctrl_c
@@ -136,6 +136,7 @@ def cmd_eval(args) -> int:
         if isinstance(args.seeds, bool) or args.seeds < 1:
             raise ConfigError(f"--seeds: expected an integer >= 1, got {args.seeds}")
         workers = pool_workers(args.workers)
+        run_timeout = check_run_timeout(getattr(args, "run_timeout", None))
         nav_noises = list(dict.fromkeys(args.nav_noise or [DEFAULT_NAV_NOISE]))
         runs = len(scenarios) * len(nav_noises) * args.seeds
         if runs > MAX_EVAL_RUNS:
@@ -193,6 +194,7 @@ def cmd_eval(args) -> int:
                 progress=not args.no_progress,
                 config_source=source,
                 nav_noises=nav_noises,
+                run_timeout_s=run_timeout,
             )
         except EvalInterrupted as exc:
             with finish_despite_signals():

@@ -96,6 +96,8 @@ from groundsim.evaluation.campaign_spec import (
 )
 from groundsim.evaluation.out_dir import make_out_dir, refuse_foreign_out
 from groundsim.evaluation.parallel import (
+    auto_deadline_s,
+    check_run_timeout,
     finish_pool,
     limit_blas_threads,
     pool_results,
@@ -780,6 +782,14 @@ def check_workers(client, scheduler: str) -> int:
     return sum(nthreads.values())
 
 
+def _deadline_s(job: Job, run_timeout_s: float | None) -> float:
+    """A case's deadline on a pool: ``--run-timeout``, else the automatic one for its runs' flights."""
+    if run_timeout_s is not None:
+        return run_timeout_s
+    d = job.runs[0].duration_s
+    return auto_deadline_s(job.scenario.duration_s if d is None else d, len(job.runs))
+
+
 def _lost_rows(job: Job, why: str) -> list[dict]:
     """The failed rows of a job whose pool worker ended under it (a plug-in's os._exit, a crash)."""
     return [_row(p, {"status": "failed", "error": f"WorkerLost in algorithm {p.algorithm}: {why}"}) for p in job.runs]
@@ -795,6 +805,7 @@ def run_campaign(
     base_config=None,
     onboard_digest: str = "defaults",
     scheduler: str | None = None,
+    run_timeout_s: float | None = None,
 ) -> CampaignResult:
     """Plan, skip what the log has, run the rest, append each case's rows as they come, then rebuild the
     table and the report.  Ctrl-C stops cleanly: the runs finished so far are kept, the table and report
@@ -803,7 +814,10 @@ def run_campaign(
     Executors: ``workers`` processes of a local pool (1 = in this process), or, with ``scheduler``
     (``tcp://HOST:PORT``), the workers of a Dask distributed cluster (``workers`` is then the threads the
     cluster offers).  Pool and cluster share one path: every job is submitted as a future, results are
-    taken as they complete and appended here; workers never touch ``out``."""
+    taken as they complete and appended here; workers never touch ``out``.  ``run_timeout_s``: each case's
+    wall-clock deadline on a local pool, its runs failed past it (None: per run 20 x its simulated seconds + 120 s,
+    summed over the case's runs); not enforced in this process or on a cluster."""
+    run_timeout_s = check_run_timeout(run_timeout_s)
     out.mkdir(parents=True, exist_ok=True)
     log_path = out / LOG_NAME
     check_outputs(out)
@@ -875,7 +889,12 @@ def run_campaign(
             elif workers > 1:  # the same, on a local pool
                 # every worker started before Ctrl-C is taken (a half-started forkserver worker printed a traceback)
                 pool, _ = start_pool(workers, CAMPAIGN_PRELOAD, progress=False)
-                results = (rows for _, rows in pool_results(pool, run_job, jobs, on_lost=_lost_rows))
+                results = (
+                    rows
+                    for _, rows in pool_results(
+                        pool, run_job, jobs, on_lost=_lost_rows, deadline_s=lambda j: _deadline_s(j, run_timeout_s)
+                    )
+                )
             else:
                 results = (run_job(j) for j in jobs)
             for rows in results:
@@ -958,6 +977,7 @@ def cmd_campaign(args) -> int:
                 f"--workers: not with --scheduler (the cluster's workers run the jobs), got --workers {args.workers}"
             )
         workers = pool_workers(args.workers if args.workers is not None else spec.workers)
+        run_timeout = check_run_timeout(getattr(args, "run_timeout", None))
         cfg_path = spec.onboard_config
         if cfg_path is None and DEFAULT_ONBOARD_CONFIG.is_file():
             cfg_path = DEFAULT_ONBOARD_CONFIG
@@ -978,6 +998,7 @@ def cmd_campaign(args) -> int:
             base_config=base,
             onboard_digest=digest,
             scheduler=scheduler,
+            run_timeout_s=run_timeout,
         )
         load1 = os.getloadavg()[0] if hasattr(os, "getloadavg") else math.nan
         rate = 60.0 * res.ran / res.wall_s if res.ran and res.wall_s > 0 else math.nan

@@ -75,6 +75,8 @@ import numpy as np
 
 from groundsim.evaluation.parallel import (
     JobsInterrupted,
+    auto_deadline_s,
+    check_run_timeout,
     limit_blas_threads,
     progress_bar,
     report_progress,
@@ -857,9 +859,12 @@ def run_eval(
     progress: bool = True,
     config_source: str = "(defaults)",
     nav_noises=None,
+    run_timeout_s: float | None = None,
 ) -> EvalResult:
     """All (navigation case, scenario, seed) runs, over ``workers`` processes (1 = in this process), then
-    scored.  ``nav_noises``: case names to run each scenario with (default: ``options.injected.nav_noise`` only)."""
+    scored.  ``nav_noises``: case names to run each scenario with (default: ``options.injected.nav_noise`` only).
+    ``run_timeout_s``: each run's wall-clock deadline on a pool, a run past it failed (None: 20 x its simulated
+    seconds + 120 s, :func:`~groundsim.evaluation.parallel.auto_deadline_s`); not enforced in this process."""
     options = options if options is not None else EvalOptions()
     variants = [options] if not nav_noises else [options.with_nav_noise(n) for n in nav_noises]
     limit_blas_threads(1)  # here and, through the environment, in the worker processes
@@ -871,6 +876,14 @@ def run_eval(
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise ConfigError(f"--workers: expected an integer >= 1, got {workers!r}")
     from groundsim.world.sim import extend_scenario, frame_count
+
+    run_timeout_s = check_run_timeout(run_timeout_s)
+
+    def deadline_s(job) -> float:
+        sc, _, o, _ = job
+        if run_timeout_s is not None:
+            return run_timeout_s
+        return auto_deadline_s(sc.duration_s if o.duration_s is None else o.duration_s)
 
     jobs = [(sc, seed, o, base_config) for o in variants for sc in scenarios for seed in seeds]
     total = 0
@@ -885,7 +898,9 @@ def run_eval(
     if progress:
         bar = progress_bar(total, "frame", "eval" if workers == 1 else f"eval ({workers} workers)")
     try:
-        results = run_jobs(_job, jobs, workers, None if bar is None else bar.update, on_lost=_lost_job)
+        results = run_jobs(
+            _job, jobs, workers, None if bar is None else bar.update, on_lost=_lost_job, deadline_s=deadline_s
+        )
     except JobsInterrupted as exc:
         done = [r for r in exc.results if r is not None]
         scores = [score_run(r) for r in done]

@@ -6,7 +6,9 @@ terminates the pool, so no worker prints a KeyboardInterrupt traceback), an end 
 pool ends, however it ends (:func:`end_with_owner`), and the progress queue.  A job
 reports the frames it has done with :func:`report_progress`, in a worker or in the parent alike.
 :func:`run_jobs` runs jobs in this process (one worker) or on a pool; interrupted, it raises
-:class:`JobsInterrupted` carrying the results of the jobs that finished.
+:class:`JobsInterrupted` carrying the results of the jobs that finished.  On a pool a job may have a wall-clock
+deadline (:func:`pool_results`): its worker is killed and the job lost, so a plug-in that hangs ends its run
+alone instead of the command.
 """
 
 from __future__ import annotations
@@ -28,6 +30,8 @@ __all__ = [
     "run_pool",
     "start_pool",
     "pool_results",
+    "auto_deadline_s",
+    "check_run_timeout",
     "stop_pool",
     "finish_pool",
     "quiet_run_logs",
@@ -166,11 +170,18 @@ def report_progress(n: int) -> None:
 
 
 def run_jobs(
-    job, jobs: list, workers: int, on_progress=None, preload: tuple[str, ...] = DEFAULT_PRELOAD, on_lost=None
+    job,
+    jobs: list,
+    workers: int,
+    on_progress=None,
+    preload: tuple[str, ...] = DEFAULT_PRELOAD,
+    on_lost=None,
+    deadline_s=None,
 ) -> list:
     """``job(j)`` for every ``j`` of ``jobs``, in this process (``workers`` 1) or on a fork-server pool; their
     results in the order of ``jobs``.  ``on_progress(n)`` gets what the jobs pass to :func:`report_progress`;
-    ``on_lost(j, why)`` is the result of a job whose pool worker ended under it (:func:`pool_results`).
+    ``on_lost(j, why)`` is the result of a job whose pool worker ended under it or that ran past ``deadline_s``
+    (:func:`pool_results`; in this process a job cannot be stopped, and the deadline is not enforced).
     Ctrl-C raises :class:`JobsInterrupted` with the results so far (the pool terminated first)."""
     global _progress
     if workers <= 1:
@@ -184,7 +195,7 @@ def run_jobs(
         finally:
             _progress = saved
         return results
-    return run_pool(job, jobs, workers, on_progress, preload, on_lost)
+    return run_pool(job, jobs, workers, on_progress, preload, on_lost, deadline_s)
 
 
 def start_pool(workers: int, preload: tuple[str, ...] = DEFAULT_PRELOAD, progress: bool = True):
@@ -248,12 +259,17 @@ def start_pool(workers: int, preload: tuple[str, ...] = DEFAULT_PRELOAD, progres
 
 
 def _watched(job, i: int, j):
-    """In a pool worker: say that job ``i`` runs on this process (before it can end the process), then run it."""
+    """In a pool worker: say that job ``i`` runs on this process (before it can end the process), run it, then say
+    that it returned."""
     import os
 
     if _starts is not None:
         _starts.put((i, os.getpid()))  # a SimpleQueue's put is written before it returns: no feeder thread to lose
-    return job(j)
+    try:
+        return job(j)
+    finally:
+        if _starts is not None:
+            _starts.put((i, None))  # returned: past its deadline now, it is no longer killed (pool_results)
 
 
 def _worker_gone(pid: int, procs: dict) -> str | None:
@@ -278,38 +294,100 @@ def _worker_gone(pid: int, procs: dict) -> str | None:
 
 #: how long a job whose worker has ended may still deliver its result (sent just before the end) before it is lost
 LOST_GRACE_S = 1.0
+#: the automatic run deadline (``--run-timeout`` not given): this many times the flight's simulated seconds, plus
+#: :data:`AUTO_DEADLINE_BASE_S` for start-up and scoring; generous, as a loaded machine runs a flight many times
+#: slower than real time, and it is there only to end a run that hangs
+AUTO_DEADLINE_FACTOR = 20.0
+AUTO_DEADLINE_BASE_S = 120.0
 
 
-def pool_results(pool, job, jobs: list, on_lost=None, drain=None) -> Iterator[tuple[int, object]]:
+def auto_deadline_s(duration_s: float, runs: int = 1) -> float:
+    """The automatic deadline of a job of ``runs`` runs of ``duration_s`` simulated seconds each."""
+    return runs * (AUTO_DEADLINE_FACTOR * float(duration_s) + AUTO_DEADLINE_BASE_S)
+
+
+def check_run_timeout(value) -> float | None:
+    """``--run-timeout``: None (the automatic deadline) or a positive finite number of seconds; ConfigError else."""
+    import math
+
+    from onboard.core.errors import ConfigError
+
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
+        raise ConfigError(f"--run-timeout: expected a positive number of seconds, got {value!r}")
+    return float(value)
+
+
+def _kill_worker(pid: int) -> None:
+    import os
+    import signal
+
+    try:
+        os.kill(pid, signal.SIGKILL)
+    except (ProcessLookupError, PermissionError):  # ended already: the pool replaces it all the same
+        pass
+
+
+def pool_results(pool, job, jobs: list, on_lost=None, drain=None, deadline_s=None) -> Iterator[tuple[int, object]]:
     """``(i, job(jobs[i]))`` as each job finishes on ``pool`` (from :func:`start_pool`), in the order they finish.
 
     A job whose worker process ends under it (``os._exit``, a crash, a kill) yields ``on_lost(jobs[i], why)``
     (raises :class:`WorkerLost` without ``on_lost``): a multiprocessing pool replaces such a worker but never
-    finishes its job, so a command waiting for every result had waited for ever.  ``drain(timeout_s)`` is
-    called while waiting (the progress queue's reader), else the wait is a 0.2 s poll."""
+    finishes its job, so a command waiting for every result had waited for ever.  ``deadline_s`` (seconds, or a
+    function of the job giving them; None: none) is each job's wall-clock limit from when its worker started it:
+    a job still running then has its worker killed (SIGKILL; the pool replaces it) and is lost the same way, its
+    ``why`` naming the deadline.  ``drain(timeout_s)`` is called while waiting (the progress queue's reader), else
+    the wait is a 0.2 s poll."""
     import time
 
     starts = getattr(pool, "job_starts", None)
     pending = [pool.apply_async(_watched, (job, i, j)) for i, j in enumerate(jobs)]
     left = set(range(len(jobs)))
     running: dict[int, int] = {}  # job -> the worker pid it started on
+    started_at: dict[int, float] = {}  # job -> when its start was read here
+    finished: set[int] = set()  # jobs whose worker said they returned (their result may still be on its way)
     procs: dict = {}  # every worker process seen, by pid: a replaced one leaves the pool's list
     gone_since: dict[int, float] = {}
+
+    def read_starts() -> None:
+        while starts is not None and not starts.empty():
+            i, pid = starts.get()
+            if pid is None:
+                finished.add(i)
+            else:
+                running[i] = pid
+                started_at[i] = time.monotonic()
+
+    def limit(i: int) -> float | None:
+        return deadline_s(jobs[i]) if callable(deadline_s) else deadline_s
+
     while left:
         if drain is not None:
             drain(0.2)
         else:
             pending[min(left)].wait(0.2)
         procs.update((p.pid, p) for p in list(getattr(pool, "_pool", [])))
-        while starts is not None and not starts.empty():
-            i, pid = starts.get()
-            running[i] = pid
+        read_starts()
         for i in sorted(left):
             if pending[i].ready():
                 left.discard(i)
                 yield i, pending[i].get()  # re-raises the job's exception here
                 continue
             pid = running.get(i)
+            t_limit = None if pid is None or starts is None else limit(i)
+            if t_limit is not None and time.monotonic() - started_at[i] > t_limit:
+                # read again just before the kill: a worker whose job has returned goes on to wait for its next
+                # task holding the task queue's lock, and killed then it would leave every other worker unfed
+                read_starts()
+                if i not in finished and not pending[i].ready():
+                    _kill_worker(pid)
+                    left.discard(i)
+                    reason = f"ran past the run deadline of {t_limit:g} s; its worker (pid {pid}) was stopped"
+                    if on_lost is None:
+                        raise WorkerLost(reason)
+                    yield i, on_lost(jobs[i], reason)
+                    continue
             why = None if pid is None else _worker_gone(pid, procs)
             if why is None:
                 continue
@@ -360,13 +438,20 @@ def finish_pool(pool) -> None:
 
 
 def run_pool(
-    job, jobs: list, workers: int, on_progress=None, preload: tuple[str, ...] = DEFAULT_PRELOAD, on_lost=None
+    job,
+    jobs: list,
+    workers: int,
+    on_progress=None,
+    preload: tuple[str, ...] = DEFAULT_PRELOAD,
+    on_lost=None,
+    deadline_s=None,
 ) -> list:
     """``job(j)`` for every ``j`` of ``jobs`` on ``workers`` fork-server processes (:func:`start_pool`); their
     results in the order of ``jobs``.  What the jobs report with :func:`report_progress` is handed to
     ``on_progress`` as it arrives.  A worker's exception is re-raised here after the pool is terminated; a job
-    whose worker ends under it is ``on_lost(j, why)`` (:func:`pool_results`); Ctrl-C terminates the pool and
-    raises :class:`JobsInterrupted` (one during the pool's start waits until its workers have started)."""
+    whose worker ends under it, or that runs past ``deadline_s``, is ``on_lost(j, why)`` (:func:`pool_results`);
+    Ctrl-C terminates the pool and raises :class:`JobsInterrupted` (one during the pool's start waits until its
+    workers have started)."""
     import queue as queue_mod
 
     results: list = [None] * len(jobs)
@@ -383,7 +468,7 @@ def run_pool(
 
     try:
         pool, q = start_pool(workers, preload)
-        for i, r in pool_results(pool, job, jobs, on_lost, drain):
+        for i, r in pool_results(pool, job, jobs, on_lost, drain, deadline_s):
             results[i] = r
         while drain(None):  # the last progress messages
             pass

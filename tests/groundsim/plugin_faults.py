@@ -5,12 +5,16 @@ from __future__ import annotations
 
 import os
 import sys
+import time
 
 from onboard.pipeline.plugins import build
 
 
 def pool_job(x):
-    """``x * 10``; ``"exit"`` calls sys.exit(3), ``"os_exit"`` leaves the process at once (os._exit(4))."""
+    """``x * 10``; ``"exit"`` calls sys.exit(3), ``"os_exit"`` leaves the process at once (os._exit(4)),
+    ``"hang"`` sleeps 30 s (a plug-in that hangs)."""
+    if x == "hang":
+        time.sleep(30.0)
     if x == "exit":
         sys.exit(3)
     if x == "os_exit":

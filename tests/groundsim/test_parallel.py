@@ -5,6 +5,7 @@ demo) does not silence that process's ``onboard`` INFO records for good."""
 from __future__ import annotations
 
 import logging
+from pathlib import Path
 
 import pytest
 
@@ -17,6 +18,7 @@ from onboard.core.errors import ConfigError, IrtrackError
 
 EXTRA = "groundsim.world.truth"
 NAMES = ("", *RUN_LOGGERS, EXTRA, "groundsim.evaluation.eval")  # "" is the root logger
+EXAMPLE_SPEC = Path(__file__).resolve().parents[2] / "config" / "campaigns" / "example.yaml"
 
 
 @pytest.fixture
@@ -89,6 +91,16 @@ def test_pool_workers_is_the_option_else_two_at_most(monkeypatch):
         pool_workers(0)
 
 
+@pytest.mark.parametrize("value", ["0", "-1", "nan", "inf"])
+@pytest.mark.parametrize("argv", [["eval"], ["campaign", str(EXAMPLE_SPEC)]], ids=["eval", "campaign"])
+def test_run_timeout_is_a_positive_finite_number_of_seconds(tmp_path, argv, value):
+    args = build_parser().parse_args([*argv, "--out", str(tmp_path / "out"), f"--run-timeout={value}"])
+    command = cmd_eval if argv[0] == "eval" else cmd_campaign
+    with pytest.raises(ConfigError, match=r"^--run-timeout: expected a positive number of seconds, got "):
+        command(args)
+    assert not (tmp_path / "out").exists()
+
+
 # a process that starts a pool of two workers on an hour's job each, says so, and waits
 _POOL_OWNER = """
 import time
@@ -147,3 +159,35 @@ def test_a_job_that_ends_its_worker_fails_alone_and_the_pool_ends():
     assert out[0] == 10 and out[3] == 20
     for k, j in ((1, "exit"), (2, "os_exit")):
         assert out[k][:2] == ("lost", j) and "worker process" in out[k][2] and "ended" in out[k][2], out[k]
+
+
+DEADLINE_BOUND_S = 10.0  # the hanging job sleeps 30 s: a deadline not enforced waits for all of it
+
+
+@pytest.mark.integration
+@pytest.mark.multicore
+def test_a_job_past_its_deadline_is_lost_alone_and_its_worker_killed():
+    """A plug-in that hung (a 60 s sleep in every add) made a 5 s eval run for hours: nothing set a deadline.
+    Now a job running past ``deadline_s`` has its worker killed and is ``on_lost``'s result naming the deadline;
+    the quick job's result is kept and no worker of the pool (the killed one's replacement included) is left."""
+    import time
+
+    from groundsim.evaluation.parallel import finish_pool, pool_results, start_pool
+    from tests.groundsim.plugin_faults import pool_job
+    from tests.process_helpers import kill_all, wait_gone
+
+    t0 = time.monotonic()
+    pool, _ = start_pool(2, preload=(), progress=False)
+    pids = {p.pid for p in pool._pool}
+    try:
+        out = dict(pool_results(pool, pool_job, ["hang", 1], on_lost=lambda j, why: ("lost", j, why), deadline_s=1.0))
+        pids |= {p.pid for p in pool._pool}
+        finish_pool(pool)
+    finally:
+        pids |= {p.pid for p in pool._pool}
+        left = wait_gone(pids, 5.0)
+        kill_all(pids)
+    assert time.monotonic() - t0 < DEADLINE_BOUND_S
+    assert out[1] == 10
+    assert out[0][:2] == ("lost", "hang") and "ran past the run deadline of 1 s" in out[0][2], out[0]
+    assert not left, f"pool workers still alive: {left}"
