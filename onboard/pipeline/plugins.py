@@ -213,7 +213,8 @@ def build(name: str, config, group: str = ESTIMATORS, option: str = "--estimator
         inst = factory(config)
     except ConfigError:
         raise
-    except Exception as exc:  # noqa: BLE001 - a plug-in that cannot be built is a configuration error, one line
+    except (Exception, SystemExit) as exc:  # noqa: BLE001 - a plug-in that cannot be built is a configuration error
+        # in one line; a sys.exit() in its __init__ too, which would otherwise end the command without a word
         raise ConfigError(f"{option} {name}: {type(exc).__name__}: {exc}") from None
     proto = _PROTOCOL[group]
     if not isinstance(inst, proto):

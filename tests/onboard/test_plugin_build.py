@@ -14,6 +14,11 @@ class InitRaises:
         raise RuntimeError("boom in __init__")
 
 
+class InitExits:
+    def __init__(self, config):
+        raise SystemExit(3)
+
+
 class ImportsMissing:
     def __init__(self, config):
         import irtrack_no_such_module  # noqa: F401
@@ -24,6 +29,7 @@ class ImportsMissing:
     [
         ("InitRaises", TRACKERS, "--tracker", "RuntimeError: boom in __init__"),
         ("ImportsMissing", None, "algorithms", "ModuleNotFoundError: No module named 'irtrack_no_such_module'"),
+        ("InitExits", None, "--estimator", "SystemExit: 3"),
     ],
 )
 def test_a_plug_in_whose_construction_raises_is_a_config_error_naming_the_option_and_the_plug_in(
