@@ -221,17 +221,12 @@ def health_folder_problem(path: str) -> str | None:
     """Why the daemon could not keep a liveness file at ``path`` (``--check``), or None: it creates the file in its
     folder and deletes it there when it stops, so the folder must exist and take a new file.  One is made there and
     removed at once: permissions alone do not tell (root, a read-only file system)."""
-    import tempfile
+    from onboard.io.record_files import folder_write_problem
 
     folder = os.path.dirname(os.path.abspath(path))
     if not os.path.isdir(folder):
         return f"{folder} is not a folder" if os.path.lexists(folder) else f"{folder}: no such folder"
-    try:
-        with tempfile.NamedTemporaryFile(dir=folder, prefix=".irtrack-check-"):
-            pass
-    except OSError as exc:
-        return f"{folder}: {exc.strerror or exc}"
-    return None
+    return folder_write_problem(folder)
 
 
 def release_health_file(path: str) -> None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import os
 
-__all__ = ["free_disk_bytes", "free_recording_path", "record_path_problem", "rotated_path"]
+__all__ = ["folder_write_problem", "free_disk_bytes", "free_recording_path", "record_path_problem", "rotated_path"]
 
 
 def rotated_path(path: str, index: int) -> str:
@@ -35,12 +35,23 @@ def free_recording_path(path: str) -> str:
     return f"{stem}-{n}.mcap"
 
 
-def record_path_problem(path: str) -> str | None:
-    """Why a recording could not be written at ``path`` (``--check``), or None: a folder there, or the nearest
-    existing folder above it (the recorder makes the rest) where a file cannot be made.  It makes one there and
-    removes it at once: permissions alone do not tell (root, a read-only or special file system)."""
+def folder_write_problem(folder: str) -> str | None:
+    """Why no new file can be made in the existing ``folder`` (``FOLDER: the system's words``), or None.  It makes one
+    there and removes it at once: permissions alone do not tell (root, a read-only or special file system)."""
     import tempfile
 
+    try:
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".irtrack-check-"):
+            pass
+    except OSError as exc:
+        return f"{folder}: {exc.strerror or exc}"
+    return None
+
+
+def record_path_problem(path: str) -> str | None:
+    """Why a recording could not be written at ``path`` (``--check``), or None: a folder there, or the nearest
+    existing folder above it (the recorder makes the rest) where a file cannot be made
+    (:func:`folder_write_problem`)."""
     p = os.path.abspath(path)
     if os.path.isdir(p):
         return f"{path} is a folder"
@@ -49,12 +60,7 @@ def record_path_problem(path: str) -> str | None:
         d = os.path.dirname(d)
     if not os.path.isdir(d):
         return f"{d} is not a folder"
-    try:
-        with tempfile.NamedTemporaryFile(dir=d, prefix=".irtrack-check-"):
-            pass
-    except OSError as exc:
-        return f"{d}: {exc.strerror or exc}"
-    return None
+    return folder_write_problem(d)
 
 
 def free_disk_bytes(path: str) -> int | None:
