@@ -540,14 +540,15 @@ def run_lockstep(
         if guidance is not None:
             guidance.frame(float(tr.t_s), took_frame, pose, track)
         mot_gt += gt_rows(k + 1, fr.labels, (tr.target_u_px, tr.target_v_px), bool(tr.target_visible))
+        objects = getattr(pipeline.tracker, "last_objects", None)  # the objects chain's; None for the single chain
         if track is not None:
-            mot_tracker += tracker_rows(k + 1, getattr(pipeline.tracker, "last_objects", None), track)
-            unscorable += unscorable_objects(getattr(pipeline.tracker, "last_objects", None), track)
+            mot_tracker += tracker_rows(k + 1, objects, track)
+            unscorable += unscorable_objects(objects, track)
         perception.add(
             [(o.object_id, o.u_px, o.v_px, o.visibility == "visible", o.contrast_netd) for o in fr.labels]
             if fr.labels
             else [(0, float(tr.target_u_px), float(tr.target_v_px), bool(tr.target_visible), None)],
-            {} if track is None else tracker_positions(getattr(pipeline.tracker, "last_objects", None), track),
+            {} if track is None else tracker_positions(objects, track),
             None
             if track is None or track.u_px is None or track.state not in ("tracking", "coasting")
             else (track.u_px, track.v_px),

@@ -106,8 +106,7 @@ def _tracked(objects=None, track=None) -> list[tuple[int, float, float, float | 
 
 def unscorable_objects(objects=None, track=None) -> int:
     """How many of one frame's tracked objects :func:`tracker_rows` leaves out (a centre not a finite number)."""
-    every = _tracked_all(objects, track)
-    return len(every) - sum(1 for t in every if math.isfinite(t[1]) and math.isfinite(t[2]))
+    return len(_tracked_all(objects, track)) - len(_tracked(objects, track))
 
 
 def tracker_rows(frame: int, objects=None, track=None) -> list[str]:
