@@ -323,34 +323,20 @@ def mot_gt_lines(labels: list[tuple[int, TargetLabel]], objects=(), intrinsics=N
     ``BOX_SIDE_PX`` square about the label's centroid, not the box as drawn: a point tracker's box (its blob's few
     pixels, or a fixed square about its centre) does not reach IoU 0.5 with a blob's box of a few pixels even on
     the right centre."""
-    from groundsim.evaluation.mot import HIDDEN_CLASS, square_box
+    from groundsim.evaluation.mot import gt_line
 
     rows = []
     for frame, lab in labels:
         if lab.has_box:
-            seen = not lab.occluded
-            rows.append(
-                (
-                    frame,
-                    TARGET_ID,
-                    f"{frame},{TARGET_ID},{square_box(lab.u_px, lab.v_px)},{int(seen)},"
-                    f"{MOT_CLASS if seen else HIDDEN_CLASS},{lab.visibility if seen else 0.0:.4f}\n",
-                )
-            )
+            cls = None if lab.occluded else MOT_CLASS
+            rows.append((frame, TARGET_ID, gt_line(frame, TARGET_ID, lab.u_px, lab.v_px, cls, lab.visibility, 4)))
     for frame, labs in objects:
         for o in labs:
             if _object_box(o, intrinsics) is None:
                 continue
             oid = int(o.object_id) + 1
-            seen = o.visibility == "visible"
-            rows.append(
-                (
-                    frame,
-                    oid,
-                    f"{frame},{oid},{square_box(o.u_px, o.v_px)},{int(seen)},"
-                    f"{MOT_CLASSES[o.cls] if seen else HIDDEN_CLASS},{float(seen):.4f}\n",
-                )
-            )
+            cls = MOT_CLASSES[o.cls] if o.visibility == "visible" else None
+            rows.append((frame, oid, gt_line(frame, oid, o.u_px, o.v_px, cls, 1.0, 4)))
     rows.sort(key=lambda r: (r[0], r[1]))
     return "".join(r[2] for r in rows)
 

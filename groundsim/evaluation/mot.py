@@ -37,6 +37,7 @@ __all__ = [
     "HIDDEN_CLASS",
     "square_box",
     "gt_rows",
+    "gt_line",
     "tracker_rows",
     "seq_name",
     "write_mot",
@@ -75,17 +76,20 @@ def gt_rows(frame: int, labels, truth_uv=None, truth_visible: bool = False) -> l
         for o in labels:
             if not (math.isfinite(o.u_px) and math.isfinite(o.v_px)):
                 continue  # behind the camera: nowhere in the image to put it
-            rows.append(_gt_row(frame, int(o.object_id) + 1, o.u_px, o.v_px, o.visibility == "visible"))
+            visible = o.visibility == "visible"
+            rows.append(gt_line(frame, int(o.object_id) + 1, o.u_px, o.v_px, 1 if visible else None, 1.0))
     elif truth_uv is not None and all(math.isfinite(c) for c in truth_uv):
-        rows.append(_gt_row(frame, 1, truth_uv[0], truth_uv[1], truth_visible))
+        rows.append(gt_line(frame, 1, truth_uv[0], truth_uv[1], 1 if truth_visible else None, 1.0))
     return rows
 
 
-def _gt_row(frame: int, mot_id: int, u: float, v: float, visible: bool) -> str:
-    """One gt.txt line: a visible object class 1, consider 1; a hidden one ``HIDDEN_CLASS``, consider 0."""
-    if visible:
-        return f"{frame},{mot_id},{square_box(u, v)},1,1,1.0\n"
-    return f"{frame},{mot_id},{square_box(u, v)},0,{HIDDEN_CLASS},0.0\n"
+def gt_line(frame: int, mot_id: int, u: float, v: float, cls: int | None, visibility: float, digits: int = 1) -> str:
+    """One gt.txt line, the ``BOX_SIDE_PX`` square about ``(u, v)``: a visible object of MOT class ``cls``, consider 1
+    and its ``visibility``; a hidden one (``cls`` None) consider 0, ``HIDDEN_CLASS`` and visibility 0 (the module
+    docstring says why), here and in ``groundsim dataset``'s files.  ``digits``: the visibility's decimals."""
+    if cls is None:
+        return f"{frame},{mot_id},{square_box(u, v)},0,{HIDDEN_CLASS},{0.0:.{digits}f}\n"
+    return f"{frame},{mot_id},{square_box(u, v)},1,{cls},{visibility:.{digits}f}\n"
 
 
 def _tracked_all(objects=None, track=None) -> list[tuple[int, float, float, float | None]]:
