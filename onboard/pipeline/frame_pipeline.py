@@ -67,8 +67,8 @@ in the shared :class:`~onboard.core.counters.RejectCounter`: ``frame_short``, ``
 ``frame_field`` (decode, :mod:`onboard.core.irframe`), ``frame_dims_mismatch``, ``frame_duplicate``,
 ``frame_out_of_order``, ``frame_time_ahead``, ``frame_time_behind``, ``frame_image`` (the tracker refused the
 frame's pixels); and, the tracker at fault, not the frame, ``tracker_error`` (``update`` raised) and
-``tracker_output_invalid`` (its answer is no track update: None, a centre or box not finite, a negative box size, a
-track id below 1, an unknown state; :func:`tracker_problem`).  Notable accepted
+``tracker_output_invalid`` (its answer is no track update: None, a centre or box not finite, a measured centre off the
+frame, a negative box size, a track id below 1, an unknown state; :func:`tracker_problem`).  Notable accepted
 events: ``frame_time_reset``, ``frame_sequence_reset``, ``frame_stream_restart``, ``frame_encoding_changed`` (INFO: mono8
 and mono16 alternating, a camera's mode or a second publisher), ``estimator_pose_reset``
 (step 4).  Estimator problems never refuse a frame: they are counted as ``estimator_input`` (it refused its
@@ -259,10 +259,19 @@ def _finite_real(x: Any) -> bool:
     return _real(x) and math.isfinite(x)
 
 
-def tracker_problem(upd: Any) -> str | None:
+def _frame_hw(pixels: Any) -> tuple[int, int] | None:
+    """A frame's ``(height, width)`` (None for anything else: the tracker's problem is then judged without it)."""
+    shape = getattr(pixels, "shape", None)
+    return (int(shape[0]), int(shape[1])) if shape is not None and len(shape) >= 2 else None
+
+
+def tracker_problem(upd: Any, frame_hw: tuple[int, int] | None = None) -> str | None:
     """What is wrong with a tracker's answer (:class:`onboard.imaging.TrackUpdate`'s fields, as the pipeline reads
     them), None when nothing: a state of ``TRACK_STATES``, a track id None or >= 1, a centre None or finite (required
-    by ``measurement_valid``), a box None or four finite numbers with a size >= 0."""
+    by ``measurement_valid``) and, when measured (``measurement_valid``) and given the frame's ``(height, width)``, on
+    the frame (0 <= u <= width, 0 <= v <= height: pixel edges, onboard.core.frames' convention; a measurement off the
+    frame is a line of sight the camera did not see, where a coasting track's prediction may well be), a box None or
+    four finite numbers with a size >= 0."""
     if upd is None:
         return "update returned None"
     try:
@@ -281,6 +290,11 @@ def tracker_problem(upd: Any) -> str | None:
                 return "measurement_valid without a centre (u_px, v_px)"
         elif not (_finite_real(u) and _finite_real(v)):
             return f"the centre (u_px, v_px) must be two finite numbers or None, got ({u!r}, {v!r})"
+        elif valid and frame_hw is not None and not (0.0 <= u <= frame_hw[1] and 0.0 <= v <= frame_hw[0]):
+            return (
+                f"a measured centre (u_px, v_px) = ({u!r}, {v!r}) off the {frame_hw[1]} x {frame_hw[0]} frame "
+                f"(0 <= u <= width, 0 <= v <= height)"
+            )
         box = upd.bbox
         if box is not None:
             if _shape(box) != (4,) or not all(_finite_real(c) for c in box) or box[2] < 0 or box[3] < 0:
@@ -542,7 +556,7 @@ class FramePipeline:
             self._refuse("image", f"tracker refused the frame: {exc}")
         except Exception as exc:  # noqa: BLE001 - a tracker bug costs its frame, never the frame loop
             self._refuse_tracker("tracker_error", f"{type(self.tracker).__name__}: {type(exc).__name__}: {exc}")
-        problem = tracker_problem(upd)
+        problem = tracker_problem(upd, _frame_hw(frame.pixels))
         if problem is not None:  # everything below reads it unguarded
             self._refuse_tracker("tracker_output_invalid", f"{type(self.tracker).__name__}: {problem}")
         self.imaging_ms.add((self._clock_ns() - i0 - waited_ns) / 1e6)

@@ -46,7 +46,9 @@ on without 3-D.
 :class:`Tracker` -- ``update(pixels) -> TrackUpdate`` (:class:`onboard.imaging.TrackUpdate`): one IR
 frame (H, W) uint8/uint16 in, the target's centre, box and track state out.  Only a ``TrackUpdate`` with
 ``measurement_valid`` (a :class:`onboard.imaging.Detection` and its centre) reaches the estimator: the centre of a
-coasting box has no bearing worth reconstructing.  A tracker whose class says ``uses_pose = True`` is called
+coasting box has no bearing worth reconstructing, and a measured centre must lie on the frame (0 <= u <= W,
+0 <= v <= H; off it, the frame is refused as ``tracker_output_invalid``, as is any answer the pipeline cannot read:
+:func:`onboard.pipeline.frame_pipeline.tracker_problem`).  A tracker whose class says ``uses_pose = True`` is called
 ``update(pixels, rotation, time_boot_us)`` instead, ``rotation()`` returning the frame's ``R_ned_from_cam`` (3, 3)
 (or None without a pose): the objects chain registers frames with it.  ``reset()``, when it has one, is called when
 the pipeline restarts (a clock reset).  ``groundsim eval --tracker NAME`` runs it in the daemon's pipeline in

@@ -171,6 +171,8 @@ def _raise(exc):
         (lambda upd: {"u_px": 1.0, "v_px": 2.0}, "tracker_output_invalid", "no state (a dict)"),
         (lambda upd: dataclasses.replace(upd, u_px=float("nan")), "tracker_output_invalid", "centre"),
         (lambda upd: dataclasses.replace(upd, v_px=float("inf")), "tracker_output_invalid", "centre"),
+        (lambda upd: dataclasses.replace(upd, u_px=-0.5), "tracker_output_invalid", "off the"),
+        (lambda upd: dataclasses.replace(upd, v_px=1e6), "tracker_output_invalid", "off the"),
         (lambda upd: dataclasses.replace(upd, bbox=(10.0, 10.0, -5.0, 5.0)), "tracker_output_invalid", "bbox"),
         (lambda upd: dataclasses.replace(upd, bbox=(np.nan, 10.0, 5.0, 5.0)), "tracker_output_invalid", "bbox"),
         (lambda upd: dataclasses.replace(upd, bbox=(1.0, 2.0)), "tracker_output_invalid", "bbox"),
@@ -198,6 +200,17 @@ def test_a_tracker_answer_the_pipeline_cannot_read_refuses_the_frame_counted_nam
     assert len(lines) == 1 and "SpoiltTracker" in lines[0] and what in lines[0]
     rig.pipe.tracker = rig.pipe.tracker.inner  # the loop goes on: the next good answer is a track
     assert rig.step(3).state == "tracking"
+
+
+def test_a_coasting_prediction_off_the_frame_is_a_track_not_a_refusal():
+    # a target leaving the frame coasts on its prediction there: not a measurement, so not the tracker's fault
+    rig = Rig(estimator=None)
+    rig.pipe.tracker = SpoiltTracker(
+        rig.pipe.tracker, lambda upd: dataclasses.replace(upd, u_px=-40.0, measurement_valid=False)
+    )
+    track = rig.step(0)
+    assert rig.pipe.frames_rejected == 0 and rig.counter["tracker_output_invalid"] == 0
+    assert track.u_px == -40.0
 
 
 def test_an_estimator_that_raises_is_counted_naming_the_estimator_and_the_exception(caplog):
