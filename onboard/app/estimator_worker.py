@@ -234,7 +234,7 @@ class ThreadedEstimator(_Carried):
             except InputError as exc:
                 self._counter.count("estimator_input", str(exc))
             except Exception as exc:  # noqa: BLE001 - the worker must never die
-                self._counter.count("estimator_error", f"{type(exc).__name__}: {exc}")
+                self._counter.count("estimator_error", f"{type(self._est).__name__}: {type(exc).__name__}: {exc}")
             finally:
                 self.worker_cpu_s += time.thread_time() - c0
             with self._cond:
@@ -358,7 +358,7 @@ def _estimator_process_main(conn, config: OnboardConfig) -> None:
             except InputError:
                 pass  # the newest row was refused when it first arrived (and counted then)
             except Exception as exc:  # noqa: BLE001 - reported to the parent, never fatal here
-                err = ("estimator_error", f"rebuild: {type(exc).__name__}: {exc}")
+                err = ("estimator_error", f"{type(est).__name__}.rebuild: {type(exc).__name__}: {exc}")
         else:
             epoch, t = msg[1], msg[2]
             try:
@@ -366,14 +366,14 @@ def _estimator_process_main(conn, config: OnboardConfig) -> None:
             except InputError as exc:
                 err = ("estimator_input", str(exc))
             except Exception as exc:  # noqa: BLE001 - reported to the parent, never fatal here
-                err = ("estimator_error", f"{type(exc).__name__}: {exc}")
+                err = ("estimator_error", f"{type(est).__name__}: {type(exc).__name__}: {exc}")
         snap = None
         if out is not None and t - last_snapshot_t >= SNAPSHOT_PERIOD_S:
             try:
                 snap = (t, est.snapshot())
                 last_snapshot_t = t
             except Exception as exc:  # noqa: BLE001 - no snapshot: a replacement rebuilds the window instead
-                err = err or ("estimator_error", f"snapshot: {type(exc).__name__}: {exc}")
+                err = err or ("estimator_error", f"{type(est).__name__}.snapshot: {type(exc).__name__}: {exc}")
         try:
             send_msg(conn, (epoch, t, pack_estimate(out), err, time.process_time(), snap))
         except (OSError, ValueError):

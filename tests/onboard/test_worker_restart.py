@@ -425,3 +425,27 @@ def test_the_threaded_worker_counts_a_gap_in_the_frames_as_the_process_one_does(
         assert counter["estimate_after_gap"] == 1 and counter["estimate_stale"] == 0
     finally:
         te.close()
+
+
+def test_an_estimator_that_raises_in_the_worker_thread_is_counted_naming_its_class(caplog):
+    """estimator.worker: thread: the error line names the estimator, as the inline pipeline's does."""
+    from onboard.app.estimator_worker import ThreadedEstimator
+    from onboard.core.counters import RejectCounter
+
+    class Broken:
+        def add(self, t, *a):
+            raise RuntimeError("singular window")
+
+        def reset(self):
+            pass
+
+    counter = RejectCounter()
+    te = ThreadedEstimator(Broken(), counter, result_wait_s=1.0)
+    try:
+        with caplog.at_level(logging.WARNING):
+            assert te.add(0.0, (1.0, 1.0), None, np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0])) is None
+        assert counter["estimator_error"] == 1
+        lines = [r.getMessage() for r in caplog.records if "estimator_error" in r.getMessage()]
+        assert len(lines) == 1 and "Broken: RuntimeError: singular window" in lines[0], lines
+    finally:
+        te.close()
