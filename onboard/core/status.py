@@ -143,7 +143,8 @@ STATUS_SECTION_KEYS: tuple[tuple[str, dict[str, Any], bool], ...] = (
         {
             "type": "object",
             "description": "the Foxglove live view (LiveView.stats): port, published, dropped (dropped_by_kind), "
-            "errors, clients (connected now), client_errors (the server's errors about what clients sent, by kind)",
+            "errors, clients (connected now), client_errors (the server's errors about what clients sent, by kind), "
+            "clients_reset (viewers gone without closing their WebSocket)",
         },
         False,
     ),

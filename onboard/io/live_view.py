@@ -39,7 +39,9 @@ logging, loggers ``foxglove.websocket.*``) one ERROR per malformed message or su
 any client could write megabytes a second into the daemon's log.  Those loggers' records go through
 :class:`ClientLog` instead: each ERROR / WARNING is counted by kind (:func:`client_error_kind`) and only the first of
 a kind reaches the log; the SDK's INFO lines on clients registering and leaving give the clients connected now.
-:meth:`LiveView.stats`: ``client_errors`` (by kind) and ``clients``.  A few refusals (a subscription repeated, a
+A viewer that leaves without closing its WebSocket (a tab closed, a radio link lost), which the SDK reports as an
+ERROR, is a departure, not an error: counted in ``clients_reset``, not logged.
+:meth:`LiveView.stats`: ``client_errors`` (by kind), ``clients`` and ``clients_reset``.  A few refusals (a subscription repeated, a
 channel advertised by a client without the capability) the SDK logs at DEBUG only, and are not counted: at DEBUG it
 would copy every malformed message a client sends, whole, into a log record.
 
@@ -120,6 +122,9 @@ SDK_WEBSOCKET_LOGGER = "foxglove.websocket"
 MAX_CLIENT_ERROR_KINDS = 32
 _CLIENT_ADDRESS = re.compile(r"\[[0-9A-Fa-f:.%\w]*\]:\d+|\d{1,3}(?:\.\d{1,3}){3}:\d+")
 _CLIENT_REGISTERED = re.compile(r"^(Registered|Unregistered) client (\S+)$")
+# the SDK's ERROR for a viewer gone without the WebSocket close (a browser tab or a radio link dropped): not something
+# the client sent wrong, so counted apart (clients_reset) and not logged
+_CLIENT_RESET = "Connection reset without closing handshake"
 
 
 @config_dataclass
@@ -207,6 +212,7 @@ class ClientLog(logging.Filter):
         self._lock = threading.Lock()
         self._errors: collections.Counter = collections.Counter()
         self._addresses: set[str] = set()
+        self._resets = 0
 
     def filter(self, record: logging.LogRecord) -> bool:
         message = record.getMessage()
@@ -218,6 +224,10 @@ class ClientLog(logging.Filter):
                         self._addresses.add(m.group(2))
                     else:
                         self._addresses.discard(m.group(2))
+            return False
+        if _CLIENT_RESET in message:
+            with self._lock:
+                self._resets += 1
             return False
         kind = client_error_kind(message)
         with self._lock:
@@ -233,6 +243,12 @@ class ClientLog(logging.Filter):
     def clients(self) -> int:
         with self._lock:
             return len(self._addresses)
+
+    @property
+    def resets(self) -> int:
+        """Viewers gone without closing their WebSocket."""
+        with self._lock:
+            return self._resets
 
     @property
     def errors(self) -> dict[str, int]:
@@ -415,6 +431,7 @@ class LiveView:
                 "errors": self.errors,
                 "clients": self.client_log.clients,
                 "client_errors": self.client_log.errors,
+                "clients_reset": self.client_log.resets,
             }
 
     # ------------------------------------------------------------------ producers (any thread)
