@@ -703,7 +703,7 @@ class SetpointGate:
     needs the stream to go on, the setpoint between advices is zero velocity at the setpoint rate (``holding``)
     instead.  :meth:`halt` brakes for a daemon that stops.  A gate that first sees the autopilot already in the
     accepting mode (a daemon restarted in flight) starts stopped too: the hand-over is the pilot's entering the mode
-    while this daemon watches.  A link that comes back after a loss is such a start (the pilot may have left and
+    while this daemon watches (with ``require_armed``, arming in the mode is entering it).  A link that comes back after a loss is such a start (the pilot may have left and
     re-entered the mode unheard): the first heartbeat after it decides the same way, and a gate that was commanding
     when the link was lost is stopped already (``link_lost``) and stays so.  The autopilot's own failsafe handles a
     setpoint stream that stops (ArduPilot GUIDED holds after its velocity timeout, PX4 leaves OFFBOARD):

@@ -421,6 +421,26 @@ def test_a_gate_that_first_sees_the_accepting_mode_waits_for_the_pilot_to_hand_o
     assert gate.stops == {"handover": 1}
 
 
+def test_arming_in_the_accepting_mode_is_the_hand_over():
+    """With require_armed (the default) the accepting state is the mode and armed: a pilot who arms on the ground in
+    GUIDED hands over as one who switches to GUIDED armed does (deploy/README.md says so); a daemon that first sees the
+    vehicle armed in GUIDED still waits."""
+    from onboard.estimation.guidance import SetpointGate
+
+    gate = SetpointGate(build(GuidanceConfig, {"enabled": True}))
+    pose = (np.array([0.0, 0.0, -60.0]), np.zeros(3))
+    advice = (10.0, np.array([3.0, 0.0, 0.0]))
+    guided_disarmed = (GUIDED[0], GUIDED[1] & ~128, GUIDED[2])
+
+    def step(now, mode):
+        return gate.step(now, link_connected=True, mode=mode, pose=(now, *pose), advice=advice)
+
+    d = step(0.1, guided_disarmed)
+    assert not d.send and d.state == "not_accepting"
+    assert step(0.2, GUIDED).send  # armed in the mode: handed over
+    assert gate.stops == {}
+
+
 def test_a_link_that_comes_back_in_the_accepting_mode_waits_for_the_pilot_to_hand_over():
     """LOITER, the link lost for 7 s, back in GUIDED: the gate's "mode seen" lived for the whole process, so it sent
     an advice of -8 m/s 76 ms after the first GUIDED heartbeat, a switch it never saw; a fresh daemon waited.  The
