@@ -608,7 +608,9 @@ def _add_campaign(p: argparse.ArgumentParser) -> None:
     )
     _workers_option(p, "worker processes, 1 = in this process (default: the spec's workers, else min(2, CPUs))")
     _run_timeout_option(
-        p, "case (its algorithms' runs together: the default is per run, summed)", "with --workers 1 or --scheduler"
+        p,
+        "job (a synthetic case's algorithms' runs together, a closed-loop run alone; the default is per run, summed)",
+        "with --workers 1 or --scheduler",
     )
     p.add_argument(
         "--scheduler",

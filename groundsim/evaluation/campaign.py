@@ -320,12 +320,13 @@ def geometry_figures(scenario: Scenario, seed: int, t_s) -> dict:
     }
 
 
-# --------------------------------------------------------------------------- one job: a case, its algorithms
+# --------------------------------------------------------------------------- one job: a case, its algorithms (or one)
 
 
 @dataclass(frozen=True)
 class Job:
-    """One case and the algorithms still to run on it (all picklable: any executor can carry it)."""
+    """One case and the algorithms still to run on it, or one of them (:func:`_jobs`; all picklable: any executor
+    can carry it)."""
 
     scenario: Scenario  # the variant
     noise: NoiseCase
@@ -688,6 +689,9 @@ class CampaignResult:
 
 
 def _jobs(spec: CampaignSpec, runs: list[RunParams], base_config) -> list[Job]:
+    """The runs as jobs: a synthetic case's algorithms in one (they share its observations and bound), a closed-loop
+    run alone (its flight is its own: one job a case had a plug-in that hangs or ends its worker lose the case's
+    other algorithms' finished runs with its own)."""
     cases = load_noise_cases()
     scen = {}
     for p in spec.scenario_paths:
@@ -695,7 +699,8 @@ def _jobs(spec: CampaignSpec, runs: list[RunParams], base_config) -> list[Job]:
         scen[sc.name] = sc
     groups: dict[tuple, list[RunParams]] = {}
     for r in runs:
-        groups.setdefault(r.case_key(), []).append(r)
+        key = r.case_key() if r.mode != "closed_loop" else (r.case_key(), r.algorithm)
+        groups.setdefault(key, []).append(r)
     jobs = []
     for rs in groups.values():
         r0 = rs[0]
@@ -783,7 +788,7 @@ def check_workers(client, scheduler: str) -> int:
 
 
 def _deadline_s(job: Job, run_timeout_s: float | None) -> float:
-    """A case's deadline on a pool: ``--run-timeout``, else the automatic one for its runs' flights."""
+    """A job's deadline on a pool: ``--run-timeout``, else the automatic one for its runs' flights."""
     if run_timeout_s is not None:
         return run_timeout_s
     d = job.runs[0].duration_s

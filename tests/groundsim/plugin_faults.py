@@ -47,6 +47,13 @@ class ExitsOnAdd(_Wrap):
         sys.exit(3)
 
 
+class LeavesOnAdd(_Wrap):
+    """Leaves its process at once (os._exit(4)) on the first ``add``: a crash no exception handler sees."""
+
+    def add(self, *args):
+        os._exit(4)
+
+
 class RaisesSometimes(_Wrap):
     """Every third ``add`` raises ValueError."""
 

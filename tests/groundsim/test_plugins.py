@@ -250,6 +250,38 @@ def test_a_campaign_on_a_pool_with_an_algorithm_that_exits_fails_those_runs_and_
     assert (t[t["algorithm"] == "paper"]["status"] == "ok").all()
 
 
+@pytest.mark.integration
+@pytest.mark.multicore
+def test_a_closed_loop_algorithm_that_kills_its_worker_loses_its_own_run_not_the_cases_others(tmp_path):
+    """Closed-loop runs share nothing within a case, so each is a job of its own: an algorithm whose plug-in ends the
+    pool's worker fails its run (WorkerLost) and the case's other algorithm keeps its row (one job a case had lost
+    both)."""
+    from groundsim.evaluation.campaign import run_campaign
+    from groundsim.evaluation.campaign_spec import spec_from_dict
+
+    spec = spec_from_dict(
+        {
+            "name": "t",
+            "mode": "closed_loop",
+            "scenarios": ["P1"],
+            "noise": ["RTK"],
+            "algorithms": ["paper", f"{FAULTS}:LeavesOnAdd"],
+            "seeds": 1,
+            "duration_s": 1.0,
+            "crb": False,
+        },
+        source=tmp_path / "spec.yaml",
+        spec_dir=tmp_path,
+    )
+    res = run_campaign(spec, tmp_path / "out", workers=2, progress=False)
+    assert res.ran == 2 and res.failed == 1
+    import pandas as pd
+
+    t = pd.read_csv(tmp_path / "out" / "runs.csv").set_index("algorithm")
+    assert t.loc["paper", "status"] == "ok", t.loc["paper", "error"]
+    assert t.loc[f"{FAULTS}:LeavesOnAdd", "error"].startswith("WorkerLost in algorithm")
+
+
 def test_a_plugin_exception_is_counted_per_frame_in_the_baseline_and_the_loop_not_a_failed_eval(monkeypatch):
     """The daemon skips a frame whose pipeline raises (pipeline_error) and the pipeline counts an estimator's
     exception; the eval's baseline and loop had let the same exceptions end the run with a traceback."""
