@@ -30,9 +30,11 @@ section (the writer makes a new summary), any other is kept up to the damage; ea
 stderr (exit 3).
 
 Refused, with one line naming the file (exit 2): an input that cannot be read, is not MCAP (its first bytes are
-not the magic), is cut before its header record, or is damaged (without ``--skip-damaged``); ``OUT`` naming the
-input (the cut original is kept), a folder, a device or a pipe.  Exit 1: ``OUT`` cannot be written.  Exit 0:
-recovered, with one line on stdout saying what; exit 3: recovered with damaged parts left out; exit 130:
+not the magic), is cut before its header record or before its first message (inside its first chunk), holds no
+message, or is damaged (without ``--skip-damaged``; with it, when no message is left); ``OUT`` naming the input
+(the cut original is kept), a folder, a device or a pipe, or a file that exists and is not empty (a recovery never
+writes over one; an empty one is taken).  No ``OUT`` is written when refused.  Exit 1: ``OUT`` cannot be written.
+Exit 0: recovered, with one line on stdout saying what; exit 3: recovered with damaged parts left out; exit 130:
 interrupted (Ctrl-C or SIGTERM), nothing written.
 """
 
@@ -301,8 +303,17 @@ def recover(src: str, dst_fd: int, skip_damaged: bool = False) -> Recovered:
             ) from None
         if header is None or output is None:
             raise InputError(f"{src}: cut short before its header record ({size} bytes): nothing to recover")
-        output.writer.finish()
         complete = walk.complete or footer_intact(f, size)
+        if output.messages == 0:  # a file of no message is no recovery: said as a cut before the header is
+            if dropped:
+                what = f"damaged, no message readable ({dropped[0]})"
+            elif complete:
+                what = f"holds no message ({size} bytes, with its footer)"
+            else:
+                whole = walk.cut_at if walk.cut_at is not None else readable
+                what = f"cut short before its first message ({size} bytes; its whole records end at byte {whole})"
+            raise InputError(f"{src}: {what}: nothing to recover")
+        output.writer.finish()
     return Recovered(
         output.messages,
         len(output.channel_ids),
@@ -329,7 +340,8 @@ def build_parser() -> argparse.ArgumentParser:
         description="Rewrite an MCAP recording cut short (SIGKILL, power cut) as a complete, indexed file: every "
         "whole record kept, messages byte for byte.",
         epilog="Exit 0 recovered, 3 recovered with damaged parts left out (--skip-damaged; each said on stderr), 2 "
-        "the input refused (not MCAP, damaged, unreadable) or a bad OUT, 1 OUT cannot be written.",
+        "the input refused (not MCAP, damaged, unreadable, no message to recover) or a bad OUT (one that exists and "
+        "is not empty is never written over), 1 OUT cannot be written.",
     )
     p.add_argument("input", metavar="IN.mcap", help="the recording cut short (python -m onboard --record ...)")
     p.add_argument("output", metavar="OUT.mcap", help="the complete file to write (written beside, then renamed)")
@@ -343,15 +355,28 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _refuse_existing(dst: str, target: str) -> None:
+    """:class:`InputError` when ``target`` (the file ``dst`` names) holds anything: a recovery never replaces a file,
+    as the daemon never records over one, because OUT is as likely an earlier recording as a stale recovery.  An
+    empty file is taken (one made ready for the output)."""
+    try:
+        size = os.stat(target).st_size
+    except OSError:
+        return
+    if size > 0:
+        raise InputError(f"{dst}: exists already ({size} bytes); give a new file or remove it first")
+
+
 def _output_target(src: str, dst: str) -> str:
     """The file ``dst`` names (through a symbolic link); :class:`InputError` when it cannot be written by a
-    rename or is the input itself."""
+    rename, is the input itself or exists and is not empty."""
     target, refused = output_target(dst)
     if refused is not None:
         raise InputError(f"{dst}: {refused}")
     clash = same_file_clash([("OUT.mcap", dst)], [("IN.mcap", src)])
     if clash is not None:
         raise InputError(f"{clash} (the cut original is kept)")
+    _refuse_existing(dst, target)
     return target
 
 
@@ -375,6 +400,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         with sigterm_as_interrupt():
             result = recover(args.input, fd, skip_damaged=args.skip_damaged)
+            _refuse_existing(args.output, target)  # a file made there while this recovery ran is kept too
             os.replace(tmp, target)
     except KeyboardInterrupt:  # Ctrl-C or SIGTERM: the half-written recovery goes, OUT stays as it was
         with contextlib.suppress(OSError):

@@ -139,11 +139,19 @@ def _recovers_all_but_a_hit_chunk(recording, damaged, out, byte: int, opcode: in
     assert _indexed(out) == [m for m in full if m not in lost]
 
 
-def _recovers_what_precedes_the_damage(tmp_path, cut_data: bytes, damaged, out) -> None:
+def _recovers_what_precedes_the_damage(tmp_path, capsys, cut_data: bytes, damaged, out, byte: int) -> None:
     """``record_recover --skip-damaged`` keeps the messages before the damage of a file cut short (a chunk whose
-    indexes were hit goes with them): a prefix, shorter than the undamaged cut file's (exit 3)."""
+    indexes were hit goes with them): a prefix, shorter than the undamaged cut file's (exit 3); damage before the
+    first chunk leaves no message, which is no recovery (exit 2, no OUT)."""
     cut = tmp_path / "cut.mcap"
     cut.write_bytes(cut_data)
+    if byte < _at(cut_data, Opcode.CHUNK, "first")[0]:
+        capsys.readouterr()
+        assert recover(["--skip-damaged", str(damaged), str(out)]) == 2
+        lines = capsys.readouterr().err.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith(f"error: {damaged}: damaged, no message readable (from byte ")
+        assert lines[0].endswith(": nothing to recover") and not out.exists()
+        return
     assert recover(["--skip-damaged", str(damaged), str(out)]) == 3
     kept = _indexed(out)
     whole, _ = _streamed(cut)
@@ -206,8 +214,8 @@ CUT = {
 def test_a_flipped_opcode_in_a_recording_cut_short_is_refused_not_taken_for_its_cut(recording, tmp_path, capsys, case):
     opcode, which, flipped = CUT[case]
     cut = _cut_in_its_last_chunk(recording.read_bytes())
-    _, damaged, out = _damaged_and_refused(capsys, tmp_path, cut, opcode, which, _opcode_set(flipped))
-    _recovers_what_precedes_the_damage(tmp_path, cut, damaged, out)
+    byte, damaged, out = _damaged_and_refused(capsys, tmp_path, cut, opcode, which, _opcode_set(flipped))
+    _recovers_what_precedes_the_damage(tmp_path, capsys, cut, damaged, out, byte)
 
 
 @pytest.mark.parametrize("where", ["finished", "in_a_chunk", "after_its_data_end", "in_its_summary", "in_its_magic"])
@@ -273,8 +281,8 @@ def test_a_flipped_length_bit_in_a_recording_cut_short_is_not_taken_for_its_cut(
     run past it too (a cut cuts them) and the length is one a reader reads at all."""
     opcode, which, bit = CUT_LENGTHS[case]
     cut = _cut_in_its_last_chunk(recording.read_bytes())
-    _, damaged, out = _damaged_and_refused(capsys, tmp_path, cut, opcode, which, _length_bit_flipped(bit))
-    _recovers_what_precedes_the_damage(tmp_path, cut, damaged, out)
+    byte, damaged, out = _damaged_and_refused(capsys, tmp_path, cut, opcode, which, _length_bit_flipped(bit))
+    _recovers_what_precedes_the_damage(tmp_path, capsys, cut, damaged, out, byte)
 
 
 def _edited(recording, tmp_path, edit) -> tuple:

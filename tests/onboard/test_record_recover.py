@@ -303,6 +303,40 @@ def test_a_file_cut_inside_its_header_is_said_to_be_cut_not_damaged(tmp_path, ca
     assert not out.exists()
 
 
+@pytest.mark.parametrize("size", [100, 5400])
+def test_a_file_cut_inside_its_first_chunk_has_nothing_to_recover(tmp_path, capsys, size):
+    """Cut after its header but before the end of its first chunk: no message is whole, and a file of none is no
+    recovery (it had said 'wrote ... 0 messages', exit 0, and left that file)."""
+    full, cut, out = tmp_path / "f.mcap", tmp_path / "c.mcap", tmp_path / "out.mcap"
+    _recording(full)
+    assert size < _chunk_bounds(full)[0][0] + _chunk_bounds(full)[0][1]
+    _cut(full, cut, size)
+    line = _refused(capsys, [str(cut), str(out)])
+    assert line.startswith(f"error: {cut}: cut short before its first message ({size} bytes; its whole records end ")
+    assert line.endswith(": nothing to recover")
+    assert not out.exists() and not [p for p in os.listdir(tmp_path) if p.endswith(".tmp")]
+
+
+def test_an_existing_output_is_never_written_over_an_empty_one_is_taken(tmp_path, capsys):
+    full, cut, out = tmp_path / "f.mcap", tmp_path / "c.mcap", tmp_path / "out.mcap"
+    _recording(full)
+    _cut(full, cut, full.stat().st_size // 2)
+    earlier = full.read_bytes()
+    out.write_bytes(earlier)  # an earlier, complete recording given as OUT by mistake
+    assert _refused(capsys, [str(cut), str(out)]) == (
+        f"error: {out}: exists already ({len(earlier)} bytes); give a new file or remove it first"
+    )
+    assert out.read_bytes() == earlier and not [p for p in os.listdir(tmp_path) if p.endswith(".tmp")]
+    link = tmp_path / "link.mcap"  # through a symbolic link: the file it names
+    link.symlink_to(out)
+    assert _refused(capsys, [str(cut), str(link)]).startswith(f"error: {link}: exists already")
+    empty = tmp_path / "empty.mcap"
+    empty.write_bytes(b"")
+    assert main([str(cut), str(empty)]) == 0
+    assert f"wrote {empty}: " in capsys.readouterr().out
+    assert 0 < len(_in_file_order(empty)[0]) < len(_in_file_order(full)[0])
+
+
 @pytest.mark.parametrize("signum", ["SIGINT", "SIGTERM"])
 def test_an_interrupted_recovery_leaves_no_temporary_file_and_says_so(tmp_path, capsys, monkeypatch, signum):
     import signal
@@ -311,7 +345,7 @@ def test_an_interrupted_recovery_leaves_no_temporary_file_and_says_so(tmp_path, 
 
     full, out = tmp_path / "f.mcap", tmp_path / "out.mcap"
     _recording(full)
-    out.write_bytes(b"an earlier recovery")
+    out.write_bytes(b"")  # an empty OUT is taken (one that holds anything is refused before recovering)
 
     def stopped(*_a, **_k):
         os.kill(os.getpid(), getattr(signal, signum))
@@ -321,5 +355,5 @@ def test_an_interrupted_recovery_leaves_no_temporary_file_and_says_so(tmp_path, 
     before = signal.getsignal(signal.SIGTERM)
     assert main([str(full), str(out)]) == 130
     assert capsys.readouterr().err == f"interrupted: nothing written ({out} is as it was, or was not created)\n"
-    assert out.read_bytes() == b"an earlier recovery" and not [p for p in os.listdir(tmp_path) if p.endswith(".tmp")]
+    assert out.read_bytes() == b"" and not [p for p in os.listdir(tmp_path) if p.endswith(".tmp")]
     assert signal.getsignal(signal.SIGTERM) == before
