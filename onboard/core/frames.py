@@ -553,13 +553,15 @@ def check_unit_quat(q, what: str, tol: float = QUAT_NORM_TOL) -> np.ndarray:
         if not math.isfinite(n1):
             raise FrameError(f"{what}: quaternion must be 4 finite numbers (w, x, y, z)")
         if abs(n1 - 1.0) > tol:
-            raise FrameError(f"{what}: quaternion norm {abs(n1 - 1.0) + 1:.6g} is not 1 within {tol}")
+            raise FrameError(f"{what}: quaternion norm {n1:.6g} is not 1 within {tol}")
         return quat_normalize(q)
     if q.shape[-1] != 4 or not np.all(np.isfinite(q)):
         raise FrameError(f"{what}: quaternion must be 4 finite numbers (w, x, y, z)")
     n = np.linalg.norm(q, axis=-1)
-    if np.any(np.abs(n - 1.0) > tol):
-        raise FrameError(f"{what}: quaternion norm {float(np.max(np.abs(n - 1.0))) + 1:.6g} is not 1 within {tol}")
+    off = np.abs(n - 1.0)
+    if np.any(off > tol):
+        worst = float(n.flat[int(np.argmax(off))])  # the norm itself: a zero quaternion reads 0, not 2
+        raise FrameError(f"{what}: quaternion norm {worst:.6g} is not 1 within {tol}")
     return quat_normalize(q)
 
 

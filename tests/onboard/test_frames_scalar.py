@@ -45,10 +45,16 @@ def test_single_quaternion_paths_refuse_what_the_vectorised_ones_refuse(q):
     assert messages[0] == messages[1]
 
 
-def test_single_quaternion_norm_error_names_the_norm():
-    for arg in (np.array([1.01, 0, 0, 0]), np.array([[1.01, 0, 0, 0]])):
-        with pytest.raises(F.FrameError, match=r"PoseSample.q: quaternion norm 1.01 is not 1 within 0.001"):
+@pytest.mark.parametrize(
+    "q, norm",
+    [((1.01, 0, 0, 0), "1.01"), ((0.99, 0, 0, 0), "0.99"), ((0, 0, 0, 0), "0"), ((0.5, 0, 0, 0), "0.5")],
+)
+def test_single_quaternion_norm_error_names_the_norm(q, norm):
+    """The norm itself, below 1 as above it (it had printed |norm - 1| + 1: a zero quaternion read 'norm 2')."""
+    for arg in (np.array(q, float), np.array([q, (1.0, 0, 0, 0)], float)):
+        with pytest.raises(F.FrameError) as info:
             F.check_unit_quat(arg, "PoseSample.q")
+        assert str(info.value) == f"PoseSample.q: quaternion norm {norm} is not 1 within 0.001"
 
 
 @settings(max_examples=300, deadline=None)
