@@ -28,9 +28,10 @@ One error format, :class:`SchemaError` (a :class:`~onboard.core.errors.ConfigErr
 direct construction; entry points print it and exit with :attr:`SchemaError.exit_code` (2).
 
 One YAML loader, :func:`read_yaml`: safe, duplicate keys, aliases and nesting deeper than :data:`MAX_YAML_DEPTH`
-refused, and YAML 1.2 floats and booleans -- ``3e-1``
-and ``1e-3`` are numbers (YAML 1.1, PyYAML's default, reads an exponent without a dot as a string), and only
-``true`` / ``false`` are booleans (``yes``, ``no``, ``on``, ``off`` are strings).
+refused, and YAML 1.2 numbers and booleans -- ``3e-1``
+and ``1e-3`` are numbers (YAML 1.1, PyYAML's default, reads an exponent without a dot as a string), ``010``,
+``0b11`` and ``1:30`` are strings (YAML 1.1 reads them as 8, 3 and 90), and only ``true`` / ``false`` are booleans
+(``yes``, ``no``, ``on``, ``off`` are strings).
 
 :func:`build` turns a parsed mapping into a config dataclass, descending into the fields whose type is
 another config dataclass (a section), a tuple of them, or a union of them told apart by their ``model``
@@ -743,6 +744,11 @@ class _StrictLoader(yaml.SafeLoader):
     booleans (YAML 1.2: ``yes``, ``no``, ``on`` and ``off`` are strings, so a vehicle named ``on`` is one, and
     ``enabled: yes`` is refused by its field rather than read as true).
 
+    Numbers are the decimal and hexadecimal integers and the decimal floats (``-5``, ``+3``, ``1_000``, ``0x1F``,
+    ``0.5``, ``.5``, ``1e-3``, ``.inf``).  YAML 1.1's other integer forms are strings, refused by a number's field:
+    ``010`` (octal 8 to YAML 1.1, 10 to YAML 1.2: the writer meant one of them, nobody can tell which), ``0b11`` and
+    the base-60 ``1:30`` (90), which read as a number the writer did not see.
+
     It also refuses aliases (``*name``) and collections nested deeper than :data:`MAX_YAML_DEPTH`: a few hundred
     bytes of nested aliases expand to billions of values (memory and minutes before any field is checked), and
     a deep document exhausts the composer's recursion.  No configuration irtrack reads needs either (the
@@ -780,9 +786,11 @@ class _StrictLoader(yaml.SafeLoader):
             raise YamlRefused(f"a value its tag {tag} can read", got, node.start_mark) from None
 
 
-# the class's own copy of SafeLoader's implicit resolvers without YAML 1.1's booleans (SafeLoader's left as they are)
+# the class's own copy of SafeLoader's implicit resolvers without YAML 1.1's booleans and numbers (SafeLoader's left
+# as they are); the numbers and booleans this loader reads are added below
+_YAML11_ONLY = {"tag:yaml.org,2002:bool", "tag:yaml.org,2002:int", "tag:yaml.org,2002:float"}
 _StrictLoader.yaml_implicit_resolvers = {
-    first: [(tag, rx) for tag, rx in resolvers if tag != "tag:yaml.org,2002:bool"]
+    first: [(tag, rx) for tag, rx in resolvers if tag not in _YAML11_ONLY]
     for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()
 }
 
@@ -806,9 +814,21 @@ def _construct_mapping(loader: _StrictLoader, node: yaml.MappingNode, deep: bool
 
 _StrictLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _construct_mapping)
 _StrictLoader.add_implicit_resolver(
-    "tag:yaml.org,2002:float",
-    re.compile(r"^[-+]?(?:[0-9][0-9_]*)(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
+    "tag:yaml.org,2002:int",
+    re.compile(r"^[-+]?(?:0|[1-9][0-9_]*|0x[0-9a-fA-F_]+)$"),
     list("-+0123456789"),
+)
+_StrictLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(
+        r"""^(?:[-+]?[0-9][0-9_]*(?:\.[0-9_]*)?[eE][-+]?[0-9]+
+        |[-+]?[0-9][0-9_]*\.[0-9_]*
+        |[-+]?\.[0-9][0-9_]*(?:[eE][-+]?[0-9]+)?
+        |[-+]?\.(?:inf|Inf|INF)
+        |\.(?:nan|NaN|NAN))$""",
+        re.VERBOSE,
+    ),
+    list("-+0123456789."),
 )
 _StrictLoader.add_implicit_resolver(
     "tag:yaml.org,2002:bool", re.compile(r"^(?:true|True|TRUE|false|False|FALSE)$"), list("tTfF")

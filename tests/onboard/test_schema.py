@@ -25,6 +25,7 @@ from onboard.core.schema import (
     build,
     config_dataclass,
     file_keys,
+    parse_yaml_text,
 )
 
 ONE_LINE = re.compile(r"^[^\n]+$")
@@ -90,6 +91,36 @@ def test_only_true_and_false_are_booleans_in_every_file(tmp_path, word):
     p.write_text(f"vehicle: {word}\n")
     assert load_config(p, environ={}).vehicle == word
     assert yaml.safe_load("on") is True  # PyYAML's own loader is left as it is
+
+
+@pytest.mark.parametrize(
+    "text, path",
+    [
+        ("010", "camera.intrinsics.width_px"),  # octal 8 to YAML 1.1, 10 to YAML 1.2
+        ("0b11", "camera.intrinsics.width_px"),
+        ("1:30", "estimator.window_s"),  # base 60: 90 to YAML 1.1
+        ("1:30.5", "estimator.window_s"),
+        ("00", "camera.intrinsics.width_px"),
+    ],
+)
+def test_yaml_1_1_number_forms_are_strings_refused_by_their_field(tmp_path, text, path):
+    p = tmp_path / "c.yaml"
+    p.write_text(yaml.safe_dump(_nest(path, "X")).replace("X", text))
+    with pytest.raises(OnboardConfigError, match=f"^{p}: {re.escape(path)}: expected .*, got '{re.escape(text)}'$"):
+        load_config(p, environ={})
+
+
+@pytest.mark.parametrize(
+    "text, value",
+    [
+        ("0", 0), ("-5", -5), ("+3", 3), ("1_000", 1000), ("0x1F", 31), ("-0", 0),
+        ("0.5", 0.5), (".5", 0.5), ("-.5", -0.5), ("1.", 1.0), ("1e-3", 1e-3), ("3e-1", 0.3), ("1.5E+3", 1500.0),
+        ("010.5", 10.5), ("1.0e-05", 1e-05),
+    ],
+)  # fmt: skip
+def test_decimal_and_hexadecimal_numbers_read_as_numbers(text, value):
+    got = parse_yaml_text(text)
+    assert got == value and type(got) is type(value)
 
 
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
