@@ -289,12 +289,18 @@ def _geometries(d, path, fail) -> tuple[Geometry, ...]:
     return tuple(dict.fromkeys(out))
 
 
+def _beside_spec(path: Path, spec_dir: Path) -> Path:
+    """``path`` as the spec means it: relative to the spec's directory (not to wherever the command runs), resolved."""
+    return (spec_dir / path).resolve()
+
+
 def _resolve_scenario(text: str, spec_dir: Path) -> Path:
+    """A scenario entry's file: a shipped scenario's name (``P1``, ``p1``: no suffix, no '/') or a path."""
     p = Path(text)
     if p.suffix or "/" in text:
-        return p if p.is_absolute() or p.exists() else spec_dir / p
+        return _beside_spec(p, spec_dir)
     shipped = {name.lower(): path for name, path in reference_scenario_paths().items()}  # P1 or p1
-    return shipped.get(text.lower(), spec_dir / p)
+    return shipped.get(text.lower(), _beside_spec(p, spec_dir))
 
 
 def spec_from_dict(d, source="<dict>", spec_dir: Path | None = None) -> CampaignSpec:
@@ -368,7 +374,7 @@ def spec_from_dict(d, source="<dict>", spec_dir: Path | None = None) -> Campaign
     onboard = d.get("onboard_config")
     if onboard is not None:
         onboard = Path(check_string(onboard, "onboard_config", fail, what="a path to an onboard configuration file"))
-        onboard = onboard if onboard.is_absolute() or onboard.exists() else spec_dir / onboard
+        onboard = _beside_spec(onboard, spec_dir)
         if not onboard.is_file():
             fail("onboard_config", "an existing onboard configuration file", str(onboard))
     spec = CampaignSpec(

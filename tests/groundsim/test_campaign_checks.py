@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import logging
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -82,6 +83,34 @@ def test_a_seed_beyond_the_tables_integers_is_refused_naming_it(tmp_path):
         load_spec(spec)
     assert str(info.value).startswith(f"{spec}: seeds[1]: expected an integer") and "\n" not in str(info.value)
     assert _spec(tmp_path, seeds=[2**63 - 1]).seeds == (2**63 - 1,)
+
+
+def test_relative_paths_are_the_specs_neighbours_wherever_the_command_runs(tmp_path, monkeypatch):
+    """A relative scenario file or onboard_config is looked up beside the spec (docs/campaigns.md), not in the current
+    directory first: a file of the same name there was used instead, silently."""
+    from groundsim.evaluation.campaign_spec import load_spec
+
+    p1 = reference_scenario_paths()["P1"].read_text()
+    spec_dir, cwd = tmp_path / "specs", tmp_path / "cwd"
+    for d in (spec_dir / "sc", cwd / "sc"):
+        d.mkdir(parents=True)
+    (spec_dir / "sc" / "mine.yaml").write_text(p1)
+    (spec_dir / "onboard.yaml").write_text("vehicle: beside\n")
+    (cwd / "sc" / "mine.yaml").write_text(p1.replace("name: P1", "name: WRONG", 1))
+    (cwd / "onboard.yaml").write_text("vehicle: wrong\n")
+    spec = spec_dir / "spec.yaml"
+    spec.write_text("scenarios: [sc/mine.yaml, P2]\nnoise: [RTK]\nalgorithms: [paper]\nonboard_config: onboard.yaml\n")
+    monkeypatch.chdir(cwd)
+    s = load_spec(Path("..") / "specs" / "spec.yaml")
+    assert s.scenario_paths == ((spec_dir / "sc" / "mine.yaml").resolve(), reference_scenario_paths()["P2"])
+    assert s.onboard_config == (spec_dir / "onboard.yaml").resolve()
+    (spec_dir / "onboard.yaml").unlink()
+    with pytest.raises(ConfigError) as info:
+        load_spec(Path("..") / "specs" / "spec.yaml")
+    assert str(info.value) == (
+        f"{Path('..') / 'specs' / 'spec.yaml'}: onboard_config: expected an existing onboard configuration file, "
+        f"got '{(spec_dir / 'onboard.yaml').resolve()}'"
+    )
 
 
 def test_a_geometry_error_names_the_spec_and_the_field_once(tmp_path):
