@@ -125,7 +125,7 @@ from typing import TYPE_CHECKING, Annotated, Any, Literal
 import numpy as np
 
 from onboard.core.errors import InputError
-from onboard.core.frames import GeodeticOrigin
+from onboard.core.frames import GeodeticOrigin, check_unit_quat
 from onboard.core.pose_types import PoseAt, PoseSample
 from onboard.core.schema import Bool, Integer, Number, Text, config_dataclass
 from onboard.core.status import STATUS_SCHEMA
@@ -248,12 +248,20 @@ def pose_from_json(obj: Mapping[str, Any] | None, where: str = "pose") -> PoseAt
         )
         # the stored body quaternion was already a checked unit quaternion: keep its exact bits
         object.__setattr__(body, "q_ned_from_body", _frozen(_arr(obj["q_ned_from_body"])))
-        g = obj.get("q_mount_from_gimbal")
+        g = None if obj.get("q_mount_from_gimbal") is None else _arr(obj["q_mount_from_gimbal"])
+        q_cam, p_cam = _arr(obj["q_ned_from_cam"]), _arr(obj["p_cam_ned_m"])
+        # checked, not normalised (the recording's exact bits are replayed): a zero or scaled camera quaternion had
+        # replayed as a line of sight straight down, or as frames without one, with nothing refused
+        check_unit_quat(q_cam, "q_ned_from_cam")
+        if g is not None:
+            check_unit_quat(g, "q_mount_from_gimbal")
+        if p_cam.shape != (3,) or not np.all(np.isfinite(p_cam)):
+            raise ValueError(f"p_cam_ned_m must be 3 finite numbers, got {obj['p_cam_ned_m']!r}")
         return PoseAt(
             body=body,
-            p_cam_ned_m=_arr(obj["p_cam_ned_m"]),
-            q_ned_from_cam=_arr(obj["q_ned_from_cam"]),
-            q_mount_from_gimbal=None if g is None else _arr(g),
+            p_cam_ned_m=p_cam,
+            q_ned_from_cam=q_cam,
+            q_mount_from_gimbal=g,
             origin=GeodeticOrigin(float(o["lat_deg"]), float(o["lon_deg"]), float(o["alt_m"])),
             att_span_us=int(obj["att_span_us"]),
             pos_span_us=int(obj["pos_span_us"]),
