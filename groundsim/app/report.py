@@ -252,10 +252,17 @@ def cmd_report(args) -> int:
         log.info("replayed %d frames -> %d tracks in %.2f s", res.frames_fed, len(res.tracks), res.wall_s)
         poses, frames = flight_inputs(rec)
         coverage = truth_coverage(res.tracks, truth, truth_cut) if args.truth and res.tracks else None
-        extra = None
+        # what the replay could not make a track of is said, as onboard.replay says it, and kept in summary.json
+        extra: dict = {"frames_missing": res.frames_missing, "frames_refused": res.frames_refused}
+        if res.frames_missing or res.frames_refused:
+            print(
+                f"note: {args.mcap}: of the {len(rec.inputs)} frames the daemon took, {res.frames_missing} are missing "
+                f"from the file (the recorder dropped them) and {res.frames_refused} were refused in the replay: "
+                f"the report is of the {len(res.tracks)} tracks of the rest"
+            )
         if coverage is not None and coverage.partial:
             print(coverage.note(args.truth))
-            extra = {"truth_covers": asdict(coverage)}
+            extra["truth_covers"] = asdict(coverage)
         paths = write_flight_report(out, res.tracks, poses, frames, truth or None, os.path.basename(rec.path), extra)
     except KeyboardInterrupt:
         written = (set(out.glob("*")) - before) if out.is_dir() else set()

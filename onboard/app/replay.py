@@ -178,7 +178,7 @@ def load_recording(path: str) -> Recording:
             elif m.schema.startswith("irtrack.track/"):
                 tracks.append(_track(m.data))
             elif m.topic == TRUTH_TOPIC:
-                truth.append(_json_object(m.data, ("seq", "time_boot_us")))
+                truth.append(_truth(m.data))
             elif m.schema == OBJECTS_SCHEMA:
                 objects.append(_json_object(m.data, ("time_boot_us", "frame_index")))
             elif m.topic == IMAGING_POSE_TOPIC:
@@ -222,6 +222,29 @@ def _json_object(data: bytes, ints: tuple[str, ...], pose: bool = False) -> dict
             raise ValueError(f"field {name!r} is {_shown(obj[name])}, not an integer")
     if pose:
         pose_from_json(obj["pose"], "field 'pose'")
+    return obj
+
+
+#: the truth fields ``groundsim report`` reads: finite numbers in every row the simulator writes (TruthRow's), the
+#: target's pixel a number or null (behind the camera), the injected navigation errors numbers where present
+TRUTH_NUMBERS = tuple(
+    f"{who}_{what}" for who in ("target", "observer") for what in ("lat_deg", "lon_deg", "alt_m")
+) + tuple(f"q_ned_from_cam_{c}" for c in "wxyz")
+TRUTH_NUMBERS_OR_NULL = ("target_u_px", "target_v_px") + tuple(f"nav_att_err_{c}_rad" for c in "ned")
+
+
+def _truth(data: bytes) -> dict:
+    """A simulator's truth row (``irtrack.truth/1``), checked for the fields the report reads (a NaN latitude had
+    made the error plot drop its frames unsaid, a missing one a traceback)."""
+    obj = _json_object(data, ("seq", "time_boot_us"))
+    for name in TRUTH_NUMBERS + TRUTH_NUMBERS_OR_NULL:
+        value = obj.get(name)
+        if value is None and (name in TRUTH_NUMBERS_OR_NULL or name not in obj):
+            if name in TRUTH_NUMBERS:
+                raise ValueError(f"no field {name!r}")
+            continue
+        if not (_is_number(value) and math.isfinite(value)):
+            raise ValueError(f"field {name!r} is {_shown(value)}, not a finite number")
     return obj
 
 
@@ -282,8 +305,14 @@ def config_of(rec: Recording, config_path: str | None = None, overrides: dict | 
     text = rec.metadata.get("config_yaml")
     if text is None:
         raise InputError(f"{rec.path}: no configuration in its metadata (not a daemon recording?); give --config")
-    raw = yaml.safe_load(text)
-    imaging = raw.get("imaging") if isinstance(raw, dict) else None
+    where = f"{rec.path} (metadata config_yaml)"
+    try:
+        raw = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise InputError(f"{where}: not YAML: {' '.join(str(exc).split())}") from None
+    if not isinstance(raw, dict):
+        raise InputError(f"{where}: expected a mapping of configuration sections, got {type(raw).__name__}")
+    imaging = raw.get("imaging")
     if isinstance(imaging, dict) and "chain" not in imaging:
         # the effective configuration names every field: one without imaging.chain was recorded before the
         # field existed, by the single chain, which is what replays it (the default has changed since)
@@ -295,7 +324,7 @@ def config_of(rec: Recording, config_path: str | None = None, overrides: dict | 
             node = node.setdefault(k, {})
         node[keys[-1]] = value
     # an override's error names its option (--set), the rest the recording's metadata
-    return build_config(raw, f"{rec.path} (metadata config_yaml)", {p: src for p, (_v, src) in ov.items()})
+    return build_config(raw, where, {p: src for p, (_v, src) in ov.items()})
 
 
 def recorded_worker(rec: Recording) -> str | None:

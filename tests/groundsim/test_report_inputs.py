@@ -80,7 +80,11 @@ def cut_truth_flight(monkeypatch, tmp_path):
     monkeypatch.setattr(replay_module, "load_recording", files.__getitem__)
     monkeypatch.setattr(replay_module, "config_of", lambda rec, path: None)
     monkeypatch.setattr(
-        replay_module, "replay", lambda rec, config, **_: SimpleNamespace(tracks=tracks, frames_fed=FRAMES, wall_s=0.0)
+        replay_module,
+        "replay",
+        lambda rec, config, **_: SimpleNamespace(
+            tracks=tracks, frames_fed=FRAMES, frames_missing=0, frames_refused=0, wall_s=0.0
+        ),
     )
     # the error plot is where a cut truth shows (numpy's warning came from its scale); the trajectory is not drawn
     monkeypatch.setattr(plots, "plot_trajectory", lambda path, run, title: path)
@@ -109,6 +113,29 @@ def test_a_cut_truth_is_said_once_marked_in_the_summary_and_no_numpy_warning_rea
         "flight_s": 1.9,
         "cut_short": CUT,
     }
+
+
+def test_frames_the_replay_could_not_track_are_said_and_counted_in_the_summary(cut_truth_flight, capsys, monkeypatch):
+    """20 frames removed from a flight's file had changed its report (its 3-D gone with the track the gap broke)
+    with nothing said; onboard.replay said "20 missing from the file"."""
+    import onboard.app.replay as replay_module
+
+    tracks = [_track(k) for k in range(FRAMES - 3)]
+    monkeypatch.setattr(
+        replay_module,
+        "replay",
+        lambda rec, config, **_: SimpleNamespace(
+            tracks=tracks, frames_fed=FRAMES - 2, frames_missing=2, frames_refused=1, wall_s=0.0
+        ),
+    )
+    assert cmd_report(cut_truth_flight) == 0
+    notes = [line for line in capsys.readouterr().out.splitlines() if "missing from the file" in line]
+    assert notes == [
+        f"note: flight.mcap: of the {FRAMES} frames the daemon took, 2 are missing from the file (the recorder "
+        f"dropped them) and 1 were refused in the replay: the report is of the {FRAMES - 3} tracks of the rest"
+    ]
+    summary = json.loads((Path(cut_truth_flight.out) / "summary.json").read_text())
+    assert (summary["frames_missing"], summary["frames_refused"], summary["frames"]) == (2, 1, FRAMES - 3)
 
 
 def test_truth_coverage_counts_the_frames_and_the_span_it_covers():

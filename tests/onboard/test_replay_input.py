@@ -9,6 +9,7 @@ from __future__ import annotations
 import errno
 import json
 import os
+import re
 import subprocess
 import sys
 from collections.abc import Callable
@@ -287,6 +288,64 @@ def test_a_bad_set_on_a_recordings_configuration_names_the_option_not_the_file()
     with pytest.raises(OnboardConfigError, match=r"^--set: camera.intrinsics.fx_px: expected a number in \(0, "):
         config_of(rec, None, {"camera.intrinsics.fx_px": (-1.0, "--set")})
     assert config_of(rec, None, {"camera.intrinsics.fx_px": (400.0, "--set")}).camera.intrinsics.fx_px == 400.0
+
+
+@pytest.mark.parametrize(
+    "text, said",
+    [
+        ("imaging: [chain", "F.mcap (metadata config_yaml): not YAML: "),
+        ("hello", "F.mcap (metadata config_yaml): expected a mapping of configuration sections, got str"),
+        ("- a", "F.mcap (metadata config_yaml): expected a mapping of configuration sections, got list"),
+    ],
+)
+def test_a_recordings_configuration_that_is_not_a_mapping_is_refused_naming_the_metadata(text, said):
+    """It had ended replay and report in a traceback (yaml's ParserError, AttributeError on a str)."""
+    import types
+
+    from onboard.app.replay import config_of
+
+    with pytest.raises(InputError) as info:
+        config_of(types.SimpleNamespace(path="F.mcap", metadata={"config_yaml": text}))
+    assert str(info.value).startswith(said) and "\n" not in str(info.value)
+
+
+def _truth_message(**change) -> bytes:
+    from groundsim.world.truth import TruthRow, truth_json
+
+    row = TruthRow(
+        7, 32.0, 35.0, 100.0, 32.001, 35.0, 160.0, 320.0, 256.0, 1, 3, 0.1, *([0.0] * 12), 1.0, 0.0, 0.0, 0.0, 150.0
+    )
+    return json.dumps({**truth_json(row), **change}).encode()
+
+
+@pytest.mark.parametrize(
+    "change, said",
+    [
+        ({"target_lat_deg": float("nan")}, "field 'target_lat_deg' is NaN, not a finite number"),
+        ({"target_lat_deg": None}, "field 'target_lat_deg' is null, not a finite number"),
+        ({"observer_alt_m": "160"}, "field 'observer_alt_m' is \"160\", not a finite number"),
+        ({"q_ned_from_cam_w": None}, "field 'q_ned_from_cam_w' is null, not a finite number"),
+        ({"target_u_px": "x"}, "field 'target_u_px' is \"x\", not a finite number"),
+        ({"nav_att_err_e_rad": float("inf")}, "field 'nav_att_err_e_rad' is Infinity, not a finite number"),
+    ],
+)
+def test_a_truth_row_the_report_cannot_read_is_damaged_naming_the_field(change, said):
+    """A NaN target latitude had made the report's error plot drop its frames unsaid; a missing or mistyped field
+    ended it in a traceback."""
+    from onboard.app.replay import _truth
+
+    with pytest.raises(ValueError, match=re.escape(said)):
+        _truth(_truth_message(**change))
+
+
+def test_a_truth_row_without_a_field_the_report_reads_is_damaged_and_a_null_pixel_is_not():
+    from onboard.app.replay import _truth
+
+    row = json.loads(_truth_message())
+    del row["target_lon_deg"]
+    with pytest.raises(ValueError, match="no field 'target_lon_deg'"):
+        _truth(json.dumps(row).encode())
+    assert _truth(_truth_message(target_u_px=None, target_v_px=None))["target_u_px"] is None  # behind the camera
 
 
 def test_a_recording_from_before_the_chain_field_replays_with_the_single_chain_it_ran():
