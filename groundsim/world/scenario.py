@@ -120,6 +120,12 @@ log = logging.getLogger(__name__)
 MAX_DURATION_S = 3600.0  # one hour: longer runs are not scenarios but campaigns
 MAX_FRAME_RATE_HZ = 1000.0
 MAX_SINGER_SIGMA_MPS2 = 100.0  # ~10 g: beyond it a "disturbance" is not one
+#: a scene temperature (air, sky, ground) lies in this span, kelvin: the coldest clear sky and the hottest ground on
+#: Earth stay inside it, and a temperature in Celsius typed as kelvin (15 for 288.15) falls below it
+SCENE_TEMPERATURE_K = (150.0, 400.0)
+#: a hot thing's temperature (a target part, the camera's span, its NETD reference) at most, kelvin: an engine's
+#: exhaust or a flare burns below it
+HOT_TEMPERATURE_MAX_K = 3000.0
 MIN_SEPARATION_M = 1.0  # observer and target (commanded paths) must stay this far apart at every frame
 SINGER_MARGIN_S = 1.0  # a disturbance is realised this long past duration_s (no clamping at the end)
 FRAME_COUNT_EPS = 1e-9  # k < duration * rate, robust to 0.1 * 30 = 3.0000000000000004
@@ -419,7 +425,8 @@ class Scenario:
 
 _VUE = PinholeIntrinsics.vue_pro_640()
 _IR = IrSettings()
-_SCALE_K = Annotated[float, Number(0.0, lo_open=True, unit="K")]
+_SCENE_K = Annotated[float, Number(*SCENE_TEMPERATURE_K, unit="K")]
+_HOT_K = Annotated[float, Number(SCENE_TEMPERATURE_K[0], HOT_TEMPERATURE_MAX_K, unit="K")]
 
 
 @scenario_model(kw_only=True)
@@ -486,7 +493,7 @@ class TargetPartFile:
     shape: Annotated[Literal["ellipsoid", "box"], Text()]
     center_frd_m: _VEC3_M
     half_extent_m: Annotated[tuple[float, ...], Numbers(3, lo=0.0, lo_open=True, unit="m")]
-    temperature_k: _SCALE_K
+    temperature_k: _HOT_K
     emissivity: Annotated[float, Number(0.0, 1.0, lo_open=True)]
 
     def part(self) -> TargetPart:
@@ -530,19 +537,19 @@ class IrFile:
     consistency checks); target parts replace the default quadcopter."""
 
     band_um: Annotated[tuple[float, ...], Numbers(2, lo=0.0, lo_open=True, unit="um")] = _IR.band_um
-    t_min_k: _SCALE_K = _IR.t_min_k
-    t_max_k: _SCALE_K = _IR.t_max_k
+    t_min_k: _HOT_K = _IR.t_min_k
+    t_max_k: _HOT_K = _IR.t_max_k
     encoding: Annotated[Literal["mono8", "mono16"], Text()] = _IR.encoding
     netd_k: NonNegativeFloat = _IR.netd_k
     blur_sigma_px: NonNegativeFloat = _IR.blur_sigma_px
     extinction_per_km: NonNegativeFloat = _IR.extinction_per_km
-    air_temperature_k: _SCALE_K = _IR.air_temperature_k
-    sky_zenith_k: _SCALE_K = _IR.sky_zenith_k
-    sky_horizon_k: _SCALE_K = _IR.sky_horizon_k
-    ground_temperature_k: _SCALE_K = _IR.ground_temperature_k
+    air_temperature_k: _SCENE_K = _IR.air_temperature_k
+    sky_zenith_k: _SCENE_K = _IR.sky_zenith_k
+    sky_horizon_k: _SCENE_K = _IR.sky_horizon_k
+    ground_temperature_k: _SCENE_K = _IR.ground_temperature_k
     ground_emissivity: Annotated[float, Number(0.0, 1.0, lo_open=True)] = _IR.ground_emissivity
     target_parts: Annotated[tuple[TargetPartFile, ...], BeforeValidator(_nonempty)] = ()
-    netd_reference_k: _SCALE_K = _IR.netd_reference_k
+    netd_reference_k: _HOT_K = _IR.netd_reference_k
     supersample: Annotated[int, Integer(1, MAX_SUPERSAMPLE)] = _IR.supersample
     max_target_rays: Annotated[int, Integer(1, MAX_TARGET_RAYS)] = _IR.max_target_rays
     background_reuse_tol_rad: NonNegativeFloat = _IR.background_reuse_tol_rad

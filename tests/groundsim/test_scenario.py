@@ -593,7 +593,13 @@ BAD_CASES = [
     ("camera.intrinsics.width_px", 100_000, "camera.intrinsics.width_px", "an integer in [1, 4096], got 100000"),
     ("camera.intrinsics.height_px", 4097, "camera.intrinsics.height_px", "an integer in [1, 4096], got 4097"),
     ("ir.noise_bank_frames", 2.5, "ir.noise_bank_frames", "an integer"),
-    ("ir.netd_reference_k", -3.0, "ir.netd_reference_k", "> 0"),
+    ("ir.netd_reference_k", -3.0, "ir.netd_reference_k", "in [150, 3000] K, got -3.0"),
+    ("ir.air_temperature_k", 15, "ir.air_temperature_k", "in [150, 400] K, got 15"),  # Celsius typed as kelvin
+    ("ir.ground_temperature_k", 500.0, "ir.ground_temperature_k", "in [150, 400] K, got 500.0"),
+    ("ir.sky_zenith_k", 0.5, "ir.sky_zenith_k", "in [150, 400] K, got 0.5"),
+    ("ir.t_min_k", 20.0, "ir.t_min_k", "in [150, 3000] K, got 20.0"),
+    ("ir.target_parts", [_part(temperature_k=40)], "ir.target_parts[0].temperature_k", "in [150, 3000] K, got 40"),
+    ("ir.target_parts", [_part(temperature_k=1e5)], "ir.target_parts[0].temperature_k", "in [150, 3000] K"),
     ("origin.lat_deg", 95.0, "origin.lat_deg", "in [-90, 90] deg, got 95.0"),
     ("camera.intrinsics.width_px", 640.5, "camera.intrinsics.width_px", "an integer"),
     ("camera.intrinsics.cx_px", 700, "camera.intrinsics.cx_px", "in [0, 640]"),
@@ -675,6 +681,23 @@ def test_semantic_error_in_a_file_names_the_file(tmp_path):
     path.write_text((REPO / "config/scenarios/P1.yaml").read_text().replace("duration_s: 10.0", "duration_s: -5"))
     with pytest.raises(ScenarioError, match=rf"^{path}: duration_s: expected a number in \(0, 3600\] s, got -5$"):
         load_scenario(path)
+
+
+IMPLAUSIBLE_IN_A_FILE = [
+    # (dotted key, value, field named, text): values that once passed or ended in a traceback, now one line naming
+    # the file and the field
+    ("ir.air_temperature_k", 15, "ir.air_temperature_k", "expected a number in [150, 400] K, got 15"),
+]
+
+
+@pytest.mark.parametrize("key, value, field, text", IMPLAUSIBLE_IN_A_FILE)
+def test_an_implausible_value_in_a_file_names_the_file_and_the_field(tmp_path, key, value, field, text):
+    d = p1_dict()
+    _set(d, key, value)
+    path = tmp_path / "x.yaml"
+    path.write_text(yaml.safe_dump(d))
+    err = _one_line_error(load_scenario, path, f"{path}: {field}: ", text)
+    assert err.exit_code == 2
 
 
 def test_missing_file_and_directory(tmp_path):
