@@ -81,7 +81,14 @@ from onboard.app.cli_args import (  # noqa: E402
 )
 from onboard.app.output_files import same_file_clash  # noqa: E402
 from onboard.core.errors import InputError, IrtrackError  # noqa: E402
-from onboard.io.foxglove_messages import OBJECTS_SCHEMA, irframe_from_rawimage  # noqa: E402
+from onboard.core.track import TRACK_SCHEMA  # noqa: E402
+from onboard.io.foxglove_messages import (  # noqa: E402
+    FRAME_INPUT_SCHEMA,
+    IMAGING_POSE_SCHEMA,
+    OBJECTS_SCHEMA,
+    TRUTH_SCHEMA,
+    irframe_from_rawimage,
+)
 from onboard.io.mcap_read import FrameRef, read_recording  # noqa: E402
 from onboard.io.record import FRAME_INPUT_TOPIC, IMAGING_POSE_TOPIC, TRUTH_TOPIC, pose_from_json  # noqa: E402
 
@@ -166,6 +173,9 @@ def load_recording(path: str) -> Recording:
         counts[m.topic] = index + 1
         first = m.log_time_ns if first is None else first
         last = m.log_time_ns
+        unread = _unread_version(m.topic, m.schema)
+        if unread:
+            raise InputError(f"{path}: message {index} on {m.topic} (log time {m.log_time_ns} ns) is of {unread}")
         try:
             if m.schema == "foxglove.RawImage":
                 img = RawImage()
@@ -191,6 +201,28 @@ def load_recording(path: str) -> Recording:
     if truncated is not None and not counts:
         raise InputError(f"{path}: file cut short before its first message ({truncated})")
     return Recording(path, meta, frames, inputs, tracks, truth, first, last, truncated, counts, objects, imaging_poses)
+
+
+#: the versions of the messages replay reads, by the topic or the schema family it finds them by: a later version's
+#: fields may mean something else, so it is refused rather than read as this one (a track's /1 differs from /2 only
+#: in when a position is published, which replay compares as recorded)
+_READ_VERSIONS = {
+    FRAME_INPUT_TOPIC: (FRAME_INPUT_SCHEMA,),
+    TRUTH_TOPIC: (TRUTH_SCHEMA,),
+    IMAGING_POSE_TOPIC: (IMAGING_POSE_SCHEMA,),
+    "irtrack.track/": ("irtrack.track/1", TRACK_SCHEMA),
+    "irtrack.objects/": (OBJECTS_SCHEMA,),
+}
+
+
+def _unread_version(topic: str, schema: str) -> str:
+    """What is wrong when a message replay reads (by ``topic``, or by ``schema``'s family) is of a version it does
+    not read; '' when nothing."""
+    family = schema.split("/", 1)[0] + "/" if "/" in schema else None
+    known = _READ_VERSIONS.get(topic) or (_READ_VERSIONS.get(family) if family else None)
+    if known is None or schema in known:
+        return ""
+    return f"schema {schema!r}, a version this replay does not read (it reads {', '.join(known)}): a newer irtrack's?"
 
 
 def _is_int(value: Any) -> bool:

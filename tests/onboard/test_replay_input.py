@@ -494,3 +494,29 @@ def test_a_long_replay_says_how_far_it_is_every_few_seconds(monkeypatch, capsys)
         "replay: 2/40 frames (5 %), 0 frames/s",
         "replay: 4/40 frames (10 %), 0 frames/s",
     ]
+
+
+@pytest.mark.parametrize(
+    "topic, schema", [(FRAME_INPUT_TOPIC, "irtrack.frame_input/2"), ("irtrack/uav1/track", "irtrack.track/9")]
+)
+def test_a_message_of_a_version_replay_does_not_read_is_refused_naming_it(tmp_path, topic, schema):
+    """It had been read as the version replay knows, whatever its fields had come to mean."""
+    from mcap.writer import Writer
+
+    from onboard.app.replay import load_recording
+
+    path = tmp_path / "newer.mcap"
+    with open(path, "wb") as f:
+        w = Writer(f)
+        w.start()
+        sid = w.register_schema(schema, "jsonschema", b"{}")
+        cid = w.register_channel(topic, "json", sid)
+        w.add_message(cid, log_time=5, publish_time=5, data=b'{"seq": 1, "time_boot_us": 2}')
+        w.finish()
+    with pytest.raises(InputError) as info:
+        load_recording(str(path))
+    assert str(info.value) == (
+        f"{path}: message 0 on {topic} (log time 5 ns) is of schema {schema!r}, a version this replay does not read "
+        f"(it reads {'irtrack.frame_input/1' if 'frame' in schema else 'irtrack.track/1, irtrack.track/2'}): "
+        "a newer irtrack's?"
+    )
