@@ -51,6 +51,9 @@ MODES = ("synthetic", "closed_loop")
 NOISE_MODELS = ("case", "config")
 MAX_RUNS = 100_000  # a spec expanding past this is a mistake, not a campaign
 MAX_SEED = 2**63 - 1  # the table's seed column is a 64-bit integer (runs.parquet could not hold a larger one)
+#: a geometry axis's random draws are tried at most this many times the draws asked for: far more than a range with
+#: room for them needs to give distinct values at 4 significant digits, few enough to refuse a range without room fast
+DRAW_ATTEMPTS_PER_DRAW = 20
 GROUND_CLEARANCE_M = 1.0  # a derived path must stay this far above the origin's ground plane (NED d < -1 m)
 
 
@@ -281,12 +284,26 @@ def _geometries(d, path, fail) -> tuple[Geometry, ...]:
     axes = list(grid)
     for combo in itertools.product(*(grid[a] for a in axes)):
         base = dict(zip(axes, combo))
-        for _ in range(draws):
+        drawn: dict[Geometry, None] = {}
+        # a draw that rounds to one already drawn is drawn again (the draws before it, and so a spec whose draws never
+        # repeat, are unchanged); a range too narrow to give `draws` distinct values ends the search
+        for _ in range(DRAW_ATTEMPTS_PER_DRAW * draws):
+            if len(drawn) == draws:
+                break
             g = dict(base)
             for axis, (lo, hi) in ranges.items():  # 4 significant digits: readable labels, stable hashes
                 g[axis] = float(f"{rng.uniform(lo, hi):.4g}")
-            out.append(Geometry(**g))
-    return tuple(dict.fromkeys(out))
+            drawn[Geometry(**g)] = None
+        if len(drawn) < draws:
+            spans = ", ".join(f"{a} [{lo:g}, {hi:g}]" for a, (lo, hi) in ranges.items())
+            fail.text(
+                f"{path}.draws",
+                f"at most as many draws as the random axes give distinct values at 4 significant digits ({spans})",
+                f"{draws} draws, {len(drawn)} distinct",
+                "widen the range or ask for fewer draws",
+            )
+        out.extend(drawn)
+    return tuple(out)
 
 
 def _beside_spec(path: Path, spec_dir: Path) -> Path:

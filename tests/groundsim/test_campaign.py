@@ -182,6 +182,26 @@ def test_random_geometry_draws_are_deterministic_and_in_range(tmp_path):
     assert _spec(tmp_path, geometry={**geo, "seed": 12}).geometries != a.geometries
 
 
+@pytest.mark.parametrize(
+    "geo, got",
+    [
+        ({"range_scale": {"min": 1.0, "max": 1.00001}, "draws": 5}, "5 draws, 1 distinct"),
+        ({"aspect_deg": {"min": 10.0, "max": 10.02}, "manoeuvre_scale": [1.0, 2.0], "draws": 4}, "4 draws, 3 distinct"),
+    ],
+)
+def test_draws_that_rounding_would_collapse_are_refused_naming_the_field(tmp_path, geo, got):
+    """The draws are rounded to 4 significant digits: a range too narrow for them gave fewer runs, silently."""
+    with pytest.raises(ConfigError) as info:
+        _spec(tmp_path, geometry=geo)
+    assert str(info.value).startswith(f"{tmp_path / 'spec.yaml'}: geometry.draws: expected at most as many draws as")
+    assert f"got {got}; widen the range or ask for fewer draws" in str(info.value)
+
+
+def test_draws_are_distinct_and_as_many_as_asked_when_the_range_has_room(tmp_path):
+    geo = {"range_scale": {"min": 1.0, "max": 1.003}, "draws": 4, "seed": 1}  # 1.000 .. 1.003: 4 values
+    assert sorted(g.range_scale for g in _spec(tmp_path, geometry=geo).geometries) == [1.0, 1.001, 1.002, 1.003]
+
+
 def test_run_ids_are_stable_and_differ_by_every_parameter(tmp_path):
     spec = _spec(tmp_path)
     runs = plan_runs(spec, "x")
