@@ -29,7 +29,13 @@ Output (OUT.csv)
 
 Summary (--summary-json)
     ``observable``, ``method``, ``frames`` and diagnostics (no truth needed): the MAP analysis'
-    ``range_sigma_ratio`` (max over the window of the posterior range sigma over range), its
+    ``range_sigma_ratio`` (the observability verdict's input: the median over the window of the posterior range
+    sigma over range, before an unobservable solution's range floor), ``range_sigma_median_ratio`` and
+    ``range_sigma_max_ratio`` (the range sigma over range of OUT.csv's rows, from the covariance whose diagonal
+    its sigmas are, floor included: their median and largest; for ``--method paper`` the MAP analysis'),
+    ``model_fits`` (the estimator's residual adequacy test passed: false when the motion model cannot explain
+    the pixels, which makes ``observable`` false whatever the geometry), ``adequacy_p`` (that test's p-value) and
+    ``residual_rms_norm`` (the residuals' RMS over their assumed noise, about 1 when the model fits), its
     motion ``model`` (``cv``/``ca``/``ct``), ``q_horizontal_m2ps3``, ``turn_rate_radps``, ``iterations``,
     ``converged``, ``solve_ms``; for ``--method paper`` also ``delta``, ``order``, ``paper_cost``,
     ``paper_solver``, ``paper_refinement_rel`` and ``map_solve_ms``.  ``observable`` always comes
@@ -37,17 +43,18 @@ Summary (--summary-json)
     the closed form has none.  Non-finite numbers are written as ``null``.  ``windows``: how many MAP
     problems were solved (``window_s``, below); with more than one, ``observable`` is true only when every
     window is, ``observable_rows_fraction`` the share of rows taken from observable windows,
-    ``range_sigma_ratio`` the largest, ``model`` the windows' common choice (``null`` when they differ),
+    ``range_sigma_ratio`` the largest, ``model_fits`` when every window's does, ``model`` the windows' common
+    choice (``null`` when they differ),
     ``iterations`` summed, ``converged`` when every window did, and ``window_results`` each window's own
     figures (its rows and times, the rows taken from it, and the fields above); the fields of one solution
-    (``q_horizontal_m2ps3``, ``q_vertical_m2ps3``, ``turn_rate_radps``, ``map_cost``, ``attitude_bias_ned_deg``)
-    are then in ``window_results`` only.
+    (``q_horizontal_m2ps3``, ``q_vertical_m2ps3``, ``turn_rate_radps``, ``map_cost``, ``attitude_bias_ned_deg``,
+    ``adequacy_p``, ``residual_rms_norm``) are then in ``window_results`` only.
 
 Report (stdout)
-    On success one line: ``OUT.csv: N rows, method M, observable yes|no, range sigma up to R % of
-    range`` (R is ``range_sigma_ratio`` in percent; for ``--method paper`` the last two come from
-    the MAP analysis and say so), and, when the file was solved in several windows, ``, K windows of at most
-    W s (observable: P % of rows)``.
+    On success one line: ``OUT.csv: N rows, method M, observable yes|no, range sigma median R % of range, max
+    X %`` (R and X are ``range_sigma_median_ratio`` and ``range_sigma_max_ratio`` in percent: OUT.csv's rows' own;
+    for ``--method paper`` the last two come from the MAP analysis and say so), and, when the file was solved in
+    several windows, ``, K windows of at most W s (observable: P % of rows)``.
 
 Long files (``--window-s``, default 60 s)
     The MAP problem over a span is dense in its spline's controls, so its time and memory grow with the span
@@ -60,7 +67,10 @@ Long files (``--window-s``, default 60 s)
 Unobservable geometry (e.g. a straight, constant-velocity observer) is not an error: the command
 exits 0, writes the (unreliable) estimate with its large sigmas, reports ``observable no`` (and
 ``observable: false`` in the summary) and prints one ``WARNING`` line on stderr: the range is not
-determined, the camera must move across the line of sight.
+determined, the camera must move across the line of sight.  Observations the motion model cannot explain
+(the estimator's residual adequacy test fails: corrupt pixels, poses or times, or far too little noise assumed)
+are ``observable no`` too, with another ``WARNING`` line instead: the model does not fit the observations, how
+far the residuals are beyond their assumed noise, what to check.
 
 Exit codes and errors
     0 success; 2 the input or the arguments are rejected (among them an output path that exists
@@ -388,11 +398,16 @@ def _finite_or_none(x):
     return x if math.isfinite(x) else None
 
 
-def _map_summary(res: MapResult, solve_ms: float) -> dict:
+def _map_summary(res: MapResult, solve_ms: float, adequacy_p_min: float) -> dict:
     return {
         "observable": bool(res.observable),
         "observability_source": "map",
         "range_sigma_ratio": _finite_or_none(res.range_sigma_ratio),
+        # the estimator's adequacy test, one of its verdict's conditions: False when the motion model cannot
+        # explain the pixels (corrupt pixels, poses or times), which no geometry would cure
+        "model_fits": bool(res.adequacy_p >= adequacy_p_min),
+        "adequacy_p": _finite_or_none(res.adequacy_p),
+        "residual_rms_norm": _finite_or_none(res.residual_rms_norm),
         "model": res.model,
         "q_horizontal_m2ps3": _finite_or_none(res.prior.q_horizontal_m2ps3),
         "q_vertical_m2ps3": _finite_or_none(res.prior.q_vertical_m2ps3),
@@ -429,10 +444,12 @@ def reconstruct(
     )
     map_ms = sum(solution.solve_ms)
     summary = {"method": options.method, "frames": F}
+    p_min = options.map_config.adequacy_p_min
     if len(solution.windows) == 1:
-        summary.update(_map_summary(solution.results[0], map_ms))
+        summary.update(_map_summary(solution.results[0], map_ms, p_min))
     else:
-        summary.update(_windows_summary(obs, solution, map_ms, options.noise.attitude_bias_sigma_rad > 0))
+        summary.update(_windows_summary(obs, solution, map_ms, options.noise.attitude_bias_sigma_rad > 0, p_min))
+    summary.update(_range_sigma_summary(obs, solution.p_ned_m, solution.cov_p_ned_m2))
     summary["windows"] = len(solution.windows)
     summary["window_s"] = options.window_s
     summary["noise"] = {k: float(v) for k, v in vars(options.noise).items()}
@@ -463,6 +480,22 @@ def reconstruct(
     )
 
 
+def _range_sigma_summary(obs: Observations, p_ned_m: np.ndarray, cov_p_ned_m2: np.ndarray) -> dict:
+    """The MAP solution's range sigma over range per row, from the covariance whose diagonal OUT.csv's sigmas are
+    (after an unobservable solution's range floor): its median and its largest.  ``range_sigma_ratio`` is the
+    verdict's input instead, a window's median before that floor, and would understate what the file holds."""
+    los = np.asarray(p_ned_m, dtype=float) - obs.p_cam_ned_m
+    rng = np.linalg.norm(los, axis=1)
+    with np.errstate(all="ignore"):
+        u = los / rng[:, None]
+        ratio = np.sqrt(np.maximum(np.einsum("fi,fij,fj->f", u, cov_p_ned_m2, u), 0.0)) / rng
+    finite = bool(np.all(np.isfinite(ratio)))
+    return {
+        "range_sigma_median_ratio": float(np.median(ratio)) if finite else None,
+        "range_sigma_max_ratio": float(np.max(ratio)) if finite else None,
+    }
+
+
 def _bias_summary(res: MapResult, estimated: bool) -> dict:
     """``attitude_bias_ned_deg`` of a solution, when the bias was estimated (``--attitude-bias-deg`` > 0)."""
     if not estimated:
@@ -470,7 +503,9 @@ def _bias_summary(res: MapResult, estimated: bool) -> dict:
     return {"attitude_bias_ned_deg": [_finite_or_none(math.degrees(v)) for v in res.attitude_bias_rad]}
 
 
-def _windows_summary(obs: Observations, solution: WindowedSolution, map_ms: float, attitude_bias: bool) -> dict:
+def _windows_summary(
+    obs: Observations, solution: WindowedSolution, map_ms: float, attitude_bias: bool, adequacy_p_min: float
+) -> dict:
     """The summary's MAP part over several windows (the module docstring's ``Summary``): the solution's verdicts
     over all windows, iterations summed, and each window's own figures in ``window_results`` (its rows, times, the
     rows taken from it, and :func:`_map_summary`'s fields)."""
@@ -479,6 +514,7 @@ def _windows_summary(obs: Observations, solution: WindowedSolution, map_ms: floa
         "observable_rows_fraction": solution.observable_rows_fraction,
         "observability_source": "map",
         "range_sigma_ratio": _finite_or_none(solution.range_sigma_ratio),
+        "model_fits": all(r.adequacy_p >= adequacy_p_min for r in solution.results),
         "model": solution.model,
         "iterations": int(sum(r.iterations for r in solution.results)),
         "converged": all(r.converged for r in solution.results),
@@ -491,7 +527,7 @@ def _windows_summary(obs: Observations, solution: WindowedSolution, map_ms: floa
                 "rows_taken": w.take_stop - w.take_first,
                 "t_taken_first_s": float(obs.t_s[w.take_first]),
                 "t_taken_last_s": float(obs.t_s[w.take_stop - 1]),
-                **_map_summary(r, ms),
+                **_map_summary(r, ms, adequacy_p_min),
                 **_bias_summary(r, attitude_bias),
             }
             for w, r, ms in zip(solution.windows, solution.results, solution.solve_ms)
@@ -761,23 +797,49 @@ def _run(args) -> int:
             f" {args.output} and their sigmas may be off (the summary's converged: false)",
             file=sys.stderr,
         )
-    if not summary["observable"]:
-        # printed as the errors are, not logged: it is the run's verdict, whatever handlers the caller's logging has
-        where = ""
-        if "window_results" in summary:
-            spans = [
-                f"{w['t_taken_first_s']:.3f}..{w['t_taken_last_s']:.3f} s"
-                for w in summary["window_results"]
-                if not w["observable"]
-            ]
-            where = f" for t_s {', '.join(spans[:5])}{' ...' if len(spans) > 5 else ''}"
+    # printed as the errors are, not logged: they are the run's verdict, whatever handlers the caller's logging has
+    misfit = _where(summary, lambda w: not w["model_fits"])
+    if misfit is not None:
+        windows = summary.get("window_results", [summary])
+        worst = _worst_fit([w for w in windows if not w["model_fits"]])
+        p_min = options.map_config.adequacy_p_min
         print(
-            f"WARNING: {args.obs_csv}: range not determined (observable no){where}: the camera must move across the"
-            f" line of sight to the target; the positions in {args.output} lie along the bearings at an unreliable"
-            " range (see their sigmas)",
+            f"WARNING: {args.obs_csv}: the motion model does not fit the observations (observable no){misfit}: their"
+            f" residuals are {_fmt_g(worst['residual_rms_norm'], 3)} times the assumed noise (RMS; about 1 when it"
+            f" fits) and fail the adequacy test (p {_fmt_g(worst['adequacy_p'])} < {p_min:g});"
+            " check the pixels, the camera poses, their times and the noise options; the positions in"
+            f" {args.output} are unreliable (see their sigmas)",
+            file=sys.stderr,
+        )
+    geometry = _where(summary, lambda w: not w["observable"] and w["model_fits"])
+    if geometry is not None:
+        print(
+            f"WARNING: {args.obs_csv}: range not determined (observable no){geometry}: the camera must move across"
+            f" the line of sight to the target; the positions in {args.output} lie along the bearings at an"
+            " unreliable range (see their sigmas)",
             file=sys.stderr,
         )
     return EXIT_OK
+
+
+def _where(summary: dict, failed: Callable[[dict], bool]) -> str | None:
+    """None when no solution ``failed`` (a predicate on :func:`_map_summary`'s fields); else where: "" for one
+    solution over the file, " for t_s ..." naming the rows taken from each window that failed."""
+    if "window_results" not in summary:
+        return "" if failed(summary) else None
+    spans = [f"{w['t_taken_first_s']:.3f}..{w['t_taken_last_s']:.3f} s" for w in summary["window_results"] if failed(w)]
+    if not spans:
+        return None
+    return f" for t_s {', '.join(spans[:5])}{' ...' if len(spans) > 5 else ''}"
+
+
+def _worst_fit(window_results: list[dict]) -> dict:
+    """The solution whose residuals fit their noise worst."""
+    return max(window_results, key=lambda w: -math.inf if w["residual_rms_norm"] is None else w["residual_rms_norm"])
+
+
+def _fmt_g(x: float | None, digits: int = 2) -> str:
+    return "nan" if x is None else f"{x:.{digits}g}"
 
 
 class _Progress:
@@ -807,14 +869,18 @@ class _Progress:
             self._shown = False
 
 
+def _pct(ratio: float) -> str:
+    pct = 100.0 * ratio
+    return f"{pct:.2g}" if pct < 10 else f"{pct:.0f}"
+
+
 def _report_line(output: str, rows: int, summary: dict) -> str:
     """The success line on stdout (the module docstring's ``Report``)."""
-    ratio = summary["range_sigma_ratio"]
-    if ratio is None:
+    median, largest = summary["range_sigma_median_ratio"], summary["range_sigma_max_ratio"]
+    if median is None or largest is None:
         sigma = "range sigma not finite"
     else:
-        pct = 100.0 * ratio
-        sigma = f"range sigma up to {pct:.2g} % of range" if pct < 10 else f"range sigma up to {pct:.0f} % of range"
+        sigma = f"range sigma median {_pct(median)} % of range, max {_pct(largest)} %"
     analysis = "" if summary["method"] == "map" else "MAP analysis: "
     observable = "yes" if summary["observable"] else "no"
     line = f"{output}: {rows} rows, method {summary['method']}, {analysis}observable {observable}, {sigma}"
