@@ -20,7 +20,9 @@ Input (OBS.csv)
     refused.  Unknown extra columns are ignored, with one warning naming them.  Blank lines are skipped.
     Cells may carry surrounding spaces.  Sanity bounds (anything beyond is an error, not an
     overflow later): ``|t_s| <= 1e9``, pixels and intrinsics within ``1e6`` px (focal lengths
-    > 0), camera coordinates within ``1e7`` m.
+    > 0), camera coordinates within ``1e7`` m.  ``t_s`` may start anywhere (a Unix time, beyond the bound, needs
+    the first row's time subtracted); an error on rows whose median step is over 1 s asks whether ``t_s`` is in
+    milliseconds.
 
 Output (OUT.csv)
     Header, then ``t_s,n_m,e_m,d_m,sigma_n_m,sigma_e_m,sigma_d_m``: one row per input row, in input
@@ -203,9 +205,11 @@ def _number(cell: str, source: str, line: int, column: str) -> float:
     if not math.isfinite(value):
         raise CsvInputError(f"{source} line {line}, column {column}: {text!r} is not finite")
     if abs(value) > ABS_LIMITS[column]:
+        # a Unix time (about 1.8e9 s) is the usual cause: the bound is no help without the way out
+        hint = "; t_s is seconds from any origin: subtract the first row's time" if column == "t_s" else ""
         raise CsvInputError(
             f"{source} line {line}, column {column}: {value:g} is beyond the sanity bound "
-            f"|{column}| <= {ABS_LIMITS[column]:g}"
+            f"|{column}| <= {ABS_LIMITS[column]:g}{hint}"
         )
     return value
 
@@ -770,7 +774,7 @@ def _run(args) -> int:
         try:
             rec = reconstruct(obs, options, progress)
         except EstimationError as e:
-            raise CsvInputError(f"{args.obs_csv}: cannot reconstruct: {e}") from None
+            raise CsvInputError(f"{args.obs_csv}: cannot reconstruct: {e}{_time_unit_hint(obs.t_s)}") from None
         finally:
             progress.close()
         summary = {"input": str(args.obs_csv), **rec.summary}
@@ -840,6 +844,21 @@ def _worst_fit(window_results: list[dict]) -> dict:
 
 def _fmt_g(x: float | None, digits: int = 2) -> str:
     return "nan" if x is None else f"{x:.{digits}g}"
+
+
+#: a median step between rows above this is no camera's frame rate: t_s likely counts milliseconds
+SLOW_ROWS_STEP_S = 1.0
+
+
+def _time_unit_hint(t_s: np.ndarray) -> str:
+    """A hint for an error on rows whose median step is over ``SLOW_ROWS_STEP_S``: t_s in milliseconds (a 30 Hz
+    camera's 33 ms steps read as 33 s) spreads the rows so thin that the windows' errors blame their spacing."""
+    if t_s.size < 2:
+        return ""
+    step_s = float(np.median(np.diff(t_s)))
+    if step_s <= SLOW_ROWS_STEP_S:
+        return ""
+    return f" (the rows are {step_s:.3g} s apart, median: is t_s in milliseconds? it must be in seconds)"
 
 
 class _Progress:

@@ -333,6 +333,10 @@ BAD_TEXT_CASES = {
     "non-numeric": (lambda L: _set_cell(L, 8, "cx_px", "320px"), ["line 8, column cx_px", "not a number"]),
     "empty cell": (lambda L: _set_cell(L, 2, "t_s", " "), ["line 2, column t_s", "empty cell"]),
     "beyond bound": (lambda L: _set_cell(L, 4, "cam_n_m", "1e300"), ["line 4, column cam_n_m", "sanity bound"]),
+    "unix time": (
+        lambda L: _set_cell(L, 2, "t_s", "1790000000.25"),
+        ["line 2, column t_s", "sanity bound |t_s| <= 1e+09; t_s is seconds from any origin: subtract the first"],
+    ),
     # a pixel no camera sees (one such row made a reconstruction "observable" and 100 m off at 0.7 m sigma)
     "pixel far left": (lambda L: _set_cell(L, 5, "u_px", "-5000"), ["line 5, column u_px", "outside the image"]),
     "pixel far below": (lambda L: _set_cell(L, 6, "v_px", "1e6"), ["line 6, column v_px", "outside the image"]),
@@ -374,6 +378,24 @@ def test_bad_input_exit_2_one_line_naming_row_and_column(small_obs, tmp_path, ca
         assert e in err, err
     assert "Traceback" not in err
     assert not out.exists()
+
+
+def test_times_in_milliseconds_are_asked_about(small_obs, tmp_path):
+    """A 30 Hz camera's t_s in milliseconds: 33 'seconds' between rows, each solved apart; the error had named the
+    rows' spacing only ('lie over 30 s ... from the other rows')."""
+    src = tmp_path / "ms.csv"
+    src.write_text(obs_csv_text(dataclasses.replace(small_obs, t_s=1000.0 * small_obs.t_s)))
+    step_s = float(np.median(np.diff(1000.0 * small_obs.t_s)))
+    rc, err = run_main(src, "-o", tmp_path / "out.csv")
+    assert rc == 2 and err.count("\n") == 1 and err.startswith(f"error: {src}: cannot reconstruct: "), err
+    assert err.endswith(
+        f" (the rows are {step_s:.3g} s apart, median: is t_s in milliseconds? it must be in seconds)\n"
+    ), err
+    assert not (tmp_path / "out.csv").exists()
+    # seconds, however uneven, get no such question
+    src.write_text("\n".join(_lines(small_obs)[:MIN_ROWS]) + "\n")
+    rc, err = run_main(src, "-o", tmp_path / "out.csv")
+    assert rc == 2 and "is t_s in milliseconds" not in err, err
 
 
 @pytest.mark.parametrize(
