@@ -275,7 +275,7 @@ def _truth(data: bytes) -> dict:
             if name in TRUTH_NUMBERS:
                 raise ValueError(f"no field {name!r}")
             continue
-        if not (_is_number(value) and math.isfinite(value)):
+        if not (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)):
             raise ValueError(f"field {name!r} is {_shown(value)}, not a finite number")
     return obj
 
