@@ -27,8 +27,10 @@ from groundsim.world.scenario import (
     load_scenario,
     reference_scenario_paths,
 )
+from groundsim.world.sim import frame_count
 from groundsim.world.spec import SpecFail, check_integer, check_mapping, check_number, check_string, read_spec_yaml
 from onboard.core.errors import ConfigError
+from onboard.estimation.map_estimator import MapConfig
 
 __all__ = [
     "MODES",
@@ -413,6 +415,7 @@ def spec_from_dict(d, source="<dict>", spec_dir: Path | None = None) -> Campaign
     if spec.run_count > MAX_RUNS:
         fail("(document)", f"at most {MAX_RUNS} runs", f"{spec.run_count} runs")
     names: dict[str, int] = {}
+    min_frames = MapConfig().min_frames
     for i, p in enumerate(paths):  # every scenario loads, every variant is a valid geometry, the duration fits
         sc = load_scenario(p)
         if sc.is_fleet:  # a case flies one observer: the others would be left out of its runs without a word
@@ -430,6 +433,13 @@ def spec_from_dict(d, source="<dict>", spec_dir: Path | None = None) -> Campaign
         names[sc.name] = i
         if duration is not None and duration > sc.duration_s + 1e-9:
             fail("duration_s", f"at most {sc.name}'s duration_s ({sc.duration_s:g} s)", duration)
+        if duration is not None and frame_count(duration, sc.frame_rate_hz) < min_frames:
+            fail(
+                "duration_s",
+                f"a duration of at least {min_frames} frames of {sc.name}, the fewest the estimators solve "
+                f"(> {(min_frames - 1) / sc.frame_rate_hz:g} s at {sc.frame_rate_hz:g} Hz)",
+                duration,
+            )
         for g in geometries:
             derive_scenario(sc, g, source=str(source))
     return spec

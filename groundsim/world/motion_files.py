@@ -28,7 +28,19 @@ __all__ = [
     "WaypointsFile",
 ]
 
-_VEC3 = Annotated[tuple[float, ...], Numbers(3)]
+#: a position (or a length of a path) at most this far from the origin, m: far beyond any encounter a camera sees,
+#: and far below the magnitudes whose differences and squares overflow
+MAX_POSITION_M = 1e6
+#: a speed at most, m/s (Mach 3: above any aircraft or drone a scenario flies)
+MAX_SPEED_MPS = 1000.0
+#: an acceleration at most, m/s^2 (~100 g), and a jerk, m/s^3
+MAX_ACCELERATION_MPS2 = 1000.0
+MAX_JERK_MPS3 = 10_000.0
+
+_VEC3 = Annotated[tuple[float, ...], Numbers(3, -MAX_POSITION_M, hi=MAX_POSITION_M, unit="m")]
+_VEC3_MPS = Annotated[tuple[float, ...], Numbers(3, -MAX_SPEED_MPS, hi=MAX_SPEED_MPS, unit="m/s")]
+_VEC3_MPS2 = Annotated[tuple[float, ...], Numbers(3, -MAX_ACCELERATION_MPS2, hi=MAX_ACCELERATION_MPS2, unit="m/s^2")]
+_VEC3_MPS3 = Annotated[tuple[float, ...], Numbers(3, -MAX_JERK_MPS3, hi=MAX_JERK_MPS3, unit="m/s^3")]
 _ZERO3 = (0.0, 0.0, 0.0)
 
 
@@ -36,7 +48,7 @@ _ZERO3 = (0.0, 0.0, 0.0)
 class UniformLinearFile:
     model: Annotated[Literal["uniform_linear"], Text()] = "uniform_linear"
     p0_ned_m: _VEC3
-    v0_ned_mps: _VEC3 = _ZERO3
+    v0_ned_mps: _VEC3_MPS = _ZERO3
 
     def motion(self) -> Motion:
         return Cubic(self.p0_ned_m, self.v0_ned_mps, _ZERO3, _ZERO3)
@@ -46,8 +58,8 @@ class UniformLinearFile:
 class UniformAccelerationFile:
     model: Annotated[Literal["uniform_acceleration"], Text()] = "uniform_acceleration"
     p0_ned_m: _VEC3
-    v0_ned_mps: _VEC3 = _ZERO3
-    a0_ned_mps2: _VEC3 = _ZERO3
+    v0_ned_mps: _VEC3_MPS = _ZERO3
+    a0_ned_mps2: _VEC3_MPS2 = _ZERO3
 
     def motion(self) -> Motion:
         return Cubic(self.p0_ned_m, self.v0_ned_mps, self.a0_ned_mps2, _ZERO3)
@@ -57,9 +69,9 @@ class UniformAccelerationFile:
 class CubicFile:
     model: Annotated[Literal["cubic"], Text()] = "cubic"
     p0_ned_m: _VEC3
-    v0_ned_mps: _VEC3 = _ZERO3
-    a0_ned_mps2: _VEC3 = _ZERO3
-    j_ned_mps3: _VEC3 = _ZERO3
+    v0_ned_mps: _VEC3_MPS = _ZERO3
+    a0_ned_mps2: _VEC3_MPS2 = _ZERO3
+    j_ned_mps3: _VEC3_MPS3 = _ZERO3
 
     def motion(self) -> Motion:
         return Cubic(self.p0_ned_m, self.v0_ned_mps, self.a0_ned_mps2, self.j_ned_mps3)
@@ -69,7 +81,7 @@ class CubicFile:
 class CircularFile:
     model: Annotated[Literal["circular"], Text()] = "circular"
     center_ned_m: _VEC3
-    radius_m: Annotated[float, Number(0.0, lo_open=True)]
+    radius_m: Annotated[float, Number(0.0, MAX_POSITION_M, lo_open=True, unit="m")]
     azimuth0_deg: Annotated[float, Number(-360.0, 360.0, unit="deg")] = 0.0
     rate_degps: Annotated[float, Number(-360.0, 360.0, unit="deg/s (signed: > 0 clockwise from above)")]
 
@@ -107,7 +119,7 @@ def _points(value: Any) -> tuple[tuple[float, ...], ...]:
 class WaypointsFile:
     model: Annotated[Literal["waypoints"], Text()] = "waypoints"
     points_ned_m: Annotated[tuple, PlainValidator(_points)]
-    speed_mps: Annotated[float, Number(0.0, lo_open=True)]
+    speed_mps: Annotated[float, Number(0.0, MAX_SPEED_MPS, lo_open=True, unit="m/s")]
 
     def motion(self) -> Motion:
         return Waypoints(self.points_ned_m, self.speed_mps)

@@ -119,6 +119,12 @@ log = logging.getLogger(__name__)
 
 MAX_DURATION_S = 3600.0  # one hour: longer runs are not scenarios but campaigns
 MAX_FRAME_RATE_HZ = 1000.0
+#: the slowest camera at least, Hz: thermal cores run at 9 Hz or faster; below 1 Hz a run is not a video, and a rate
+#: near 0 made the renderer size its buffers by 1 / rate
+MIN_FRAME_RATE_HZ = 1.0
+#: ``ir.band_um`` within this span, micrometres: from the near infrared to the far; a band in metres (7.5e-6) is
+#: refused rather than rendered as no radiance at all
+BAND_UM = (0.5, 100.0)
 MAX_SINGER_SIGMA_MPS2 = 100.0  # ~10 g: beyond it a "disturbance" is not one
 #: a scene temperature (air, sky, ground) lies in this span, kelvin: the coldest clear sky and the hottest ground on
 #: Earth stay inside it, and a temperature in Celsius typed as kelvin (15 for 288.15) falls below it
@@ -308,7 +314,7 @@ class Scenario:
     description: Annotated[str, Text(empty=True)] = ""
     origin: Annotated[GeodeticOrigin, Instance(GeodeticOrigin, what="a GeodeticOrigin")] = DEFAULT_ORIGIN
     duration_s: Annotated[float, Number(0.0, MAX_DURATION_S, lo_open=True, unit="s")] = DEFAULT_DURATION_S
-    frame_rate_hz: Annotated[float, Number(0.0, MAX_FRAME_RATE_HZ, lo_open=True, unit="Hz")] = DEFAULT_FRAME_RATE_HZ
+    frame_rate_hz: Annotated[float, Number(MIN_FRAME_RATE_HZ, MAX_FRAME_RATE_HZ, unit="Hz")] = DEFAULT_FRAME_RATE_HZ
     seed: Annotated[int, Integer(0, 2**63 - 1)] = DEFAULT_SEED
     observer: Annotated[VehicleSpec, Instance(VehicleSpec, what="a VehicleSpec")]
     target: Annotated[VehicleSpec, Instance(VehicleSpec, what="a VehicleSpec")]
@@ -536,7 +542,7 @@ class IrFile:
     """``ir``: the renderer's settings (:class:`~groundsim.world.render.settings.IrSettings`, which keeps its own
     consistency checks); target parts replace the default quadcopter."""
 
-    band_um: Annotated[tuple[float, ...], Numbers(2, lo=0.0, lo_open=True, unit="um")] = _IR.band_um
+    band_um: Annotated[tuple[float, ...], Numbers(2, BAND_UM[0], hi=BAND_UM[1], unit="um")] = _IR.band_um
     t_min_k: _HOT_K = _IR.t_min_k
     t_max_k: _HOT_K = _IR.t_max_k
     encoding: Annotated[Literal["mono8", "mono16"], Text()] = _IR.encoding
@@ -627,7 +633,7 @@ class ScenarioFile:
     description: Annotated[str, Text(empty=True)] = ""
     origin: OriginFile = dataclasses.field(default_factory=OriginFile)
     duration_s: Annotated[float, Number(0.0, MAX_DURATION_S, lo_open=True, unit="s")] = DEFAULT_DURATION_S
-    frame_rate_hz: Annotated[float, Number(0.0, MAX_FRAME_RATE_HZ, lo_open=True, unit="Hz")] = DEFAULT_FRAME_RATE_HZ
+    frame_rate_hz: Annotated[float, Number(MIN_FRAME_RATE_HZ, MAX_FRAME_RATE_HZ, unit="Hz")] = DEFAULT_FRAME_RATE_HZ
     seed: Annotated[int, Integer(0, 2**63 - 1)] = DEFAULT_SEED
     observer: ObserverFile | None = None
     # several observers (a fleet): one shared world and targets, each its own path, camera, errors, boot clock

@@ -645,7 +645,7 @@ class Texts(FieldType):
 @dataclasses.dataclass(frozen=True)
 class Numbers(FieldType):
     """``Annotated[tuple[float, ...], Numbers(n, lo)]`` (or ``tuple[float, float, float]`` for ``n`` = 3 ...): a list of ``n`` numbers (any length >= ``min_length``
-    when ``n`` is None), held as a tuple of floats.
+    when ``n`` is None), each within ``lo`` .. ``hi``, held as a tuple of floats.
 
     The wrong shape is an error of the field (``expected a list of 3 finite numbers``); a bad element
     one of ``field[i]`` (``expected a finite number``)."""
@@ -653,6 +653,7 @@ class Numbers(FieldType):
     n: int | None = None
     lo: float | None = None
     _: dataclasses.KW_ONLY
+    hi: float | None = None
     lo_open: bool = False
     unit: str = ""
     what: str | None = None
@@ -663,11 +664,11 @@ class Numbers(FieldType):
         if typing.get_origin(source) is not tuple or typing.get_args(source) not in shapes:
             raise TypeError(f"{self!r} annotates {source!r}; it checks tuple[float, ...] or a tuple of {self.n} floats")
         n, unit = self.n, self.unit
-        element = Number(self.lo, lo_open=self.lo_open, unit=unit)
+        element = Number(self.lo, self.hi, lo_open=self.lo_open, unit=unit)
         elem_text = element.text()
         count = f"{n}" if n is not None else f"at least {self.min_length}"
         text = self.what or f"a list of {count} finite numbers" + (
-            describe_range("", self.lo, None, self.lo_open) if self.lo is not None else ""
+            describe_range("", self.lo, self.hi, self.lo_open) if (self.lo, self.hi) != (None, None) else ""
         ) + (f" {unit}" if unit else "")
         elem = _adapter(Annotated[float, element])
         min_length = self.min_length

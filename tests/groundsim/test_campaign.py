@@ -150,6 +150,8 @@ def test_a_geometry_that_collides_or_goes_underground_is_refused_naming_it():
         ({"geometry": {"manoeuvre_scale": [-1.0]}}, r"geometry\.manoeuvre_scale\[0\]"),
         ({"geometry": {"manouvre_scale": [1.0]}}, r"geometry\.manouvre_scale.*did you mean 'manoeuvre_scale'"),
         ({"duration_s": 60.0}, "duration_s"),
+        ({"duration_s": 1e-9}, r"duration_s: expected a duration of at least 10 frames of P1, .* got 1e-09$"),
+        ({"duration_s": 0.3}, r"duration_s: expected a duration of at least 10 frames of P1, .*\(> 0.3 s at 30 Hz\)"),
         ({"mode": "closed_loop", "noise_model": "case"}, "noise_model"),
         ({"crb": "yes"}, "crb"),
         ({"seed": 3}, "seed.*did you mean 'seeds'"),

@@ -507,7 +507,8 @@ BAD_CASES = [
     ("duration_s", "ten", "duration_s", "expected a number in (0, 3600] s, got 'ten'"),
     ("duration_s", -1.0, "duration_s", "expected a number in (0, 3600] s, got -1.0"),
     ("duration_s", 0, "duration_s", "in (0, 3600]"),
-    ("frame_rate_hz", -30, "frame_rate_hz", "in (0, 1000] Hz, got -30"),
+    ("frame_rate_hz", -30, "frame_rate_hz", "in [1, 1000] Hz, got -30"),
+    ("frame_rate_hz", 1e-9, "frame_rate_hz", "in [1, 1000] Hz, got 1e-09"),
     ("seed", -1, "seed", "an integer in [0, "),
     ("seed", 1.5, "seed", "an integer"),
     ("seed", True, "seed", "an integer"),
@@ -516,18 +517,48 @@ BAD_CASES = [
     ("observer", KeyError, "observer", "expected a value (required)"),
     ("observer.motion", KeyError, "observer.motion", "expected a value (required)"),
     ("observer", [1, 2], "observer", "expected a mapping with keys motion"),
-    ("target.motion.p0_ned_m", [1, 2], "target.motion.p0_ned_m", "a list of 3 finite numbers, got [1, 2]"),
+    (
+        "target.motion.p0_ned_m",
+        [1, 2],
+        "target.motion.p0_ned_m",
+        "a list of 3 finite numbers in [-1e+06, 1e+06] m, got [1, 2]",
+    ),
+    ("target.motion.p0_ned_m", [1e308, 0, -60], "target.motion.p0_ned_m[0]", "in [-1e+06, 1e+06] m, got 1e+308"),
+    ("observer.motion.v0_ned_mps", [0, 1e300, 0], "observer.motion.v0_ned_mps[1]", "in [-1000, 1000] m/s, got 1e+300"),
     ("target.motion.p0_ned_m", "0,0,0", "target.motion.p0_ned_m", "a list of 3 finite numbers"),
-    ("observer.motion.v0_ned_mps", [float("nan"), 0, 0], "observer.motion.v0_ned_mps[0]", "finite number, got nan"),
+    (
+        "observer.motion.v0_ned_mps",
+        [float("nan"), 0, 0],
+        "observer.motion.v0_ned_mps[0]",
+        "in [-1000, 1000] m/s, got nan",
+    ),
     ("observer.motion.v0_ned_mps", [0, float("inf"), 0], "observer.motion.v0_ned_mps[1]", "got inf"),
-    ("observer.motion.v0_ned_mps", [0, 10**400, 0], "observer.motion.v0_ned_mps[1]", "finite number"),
+    ("observer.motion.v0_ned_mps", [0, 10**400, 0], "observer.motion.v0_ned_mps[1]", "in [-1000, 1000] m/s, got 1000"),
     ("target.motion.model", "circle", "target.motion.model", "expected one of uniform_linear, uniform_acceleration"),
     ("target.motion.model", "circle", "target.motion.model", "did you mean 'circular'?"),
     (
         "target.motion",
         {"model": "circular", "center_ned_m": [100, 0, -80], "radius_m": -5, "rate_degps": 5},
         "target.motion.radius_m",
-        "a number > 0, got -5",
+        "a number in (0, 1e+06] m, got -5",
+    ),
+    (
+        "target.motion",
+        {"model": "circular", "center_ned_m": [100, 0, -80], "radius_m": 1e300, "rate_degps": 5},
+        "target.motion.radius_m",
+        "a number in (0, 1e+06] m, got 1e+300",
+    ),
+    (
+        "target.motion",
+        {"model": "waypoints", "points_ned_m": [[100, 0, -80], [1e300, 0, -80]], "speed_mps": 5},
+        "target.motion.points_ned_m[1][0]",
+        "in [-1e+06, 1e+06] m, got 1e+300",
+    ),
+    (
+        "target.motion",
+        {"model": "waypoints", "points_ned_m": [[100, 0, -80], [0, 0, -80]], "speed_mps": 1e300},
+        "target.motion.speed_mps",
+        "in (0, 1000] m/s, got 1e+300",
     ),
     (
         "target.motion",
@@ -584,6 +615,8 @@ BAD_CASES = [
     ("ir.target_parts", [], "ir.target_parts", "a non-empty list of parts"),
     ("ir.band_um", [13.5, 7.5], "ir.band_um", "lower < upper"),
     ("ir.band_um", [7.5, 10, 13.5], "ir.band_um", "a list of 2 finite numbers"),
+    ("ir.band_um", [7.5e-6, 13.5e-6], "ir.band_um[0]", "a number in [0.5, 100] um, got 7.5e-06"),  # metres
+    ("ir.band_um", [7.5, 1e4], "ir.band_um[1]", "a number in [0.5, 100] um, got 10000.0"),
     ("ir.encoding", "mono12", "ir.encoding", "one of mono8, mono16, got 'mono12'"),
     ("ir.netd_k", -0.1, "ir.netd_k", ">= 0"),
     ("ir.supersample", 0, "ir.supersample", "an integer in [1, 64], got 0"),
@@ -687,6 +720,9 @@ IMPLAUSIBLE_IN_A_FILE = [
     # (dotted key, value, field named, text): values that once passed or ended in a traceback, now one line naming
     # the file and the field
     ("ir.air_temperature_k", 15, "ir.air_temperature_k", "expected a number in [150, 400] K, got 15"),
+    ("ir.band_um", [7.5e-6, 13.5e-6], "ir.band_um[0]", "expected a number in [0.5, 100] um, got 7.5e-06"),
+    ("frame_rate_hz", 1e-9, "frame_rate_hz", "expected a number in [1, 1000] Hz, got 1e-09"),
+    ("target.motion.p0_ned_m", [1e308, 0, -60], "target.motion.p0_ned_m[0]", "in [-1e+06, 1e+06] m, got 1e+308"),
 ]
 
 
