@@ -257,6 +257,8 @@ def _from_validation(
         expected, got = "a value (required)", MISSING_TEXT
     elif kind == "unexpected_positional_argument":
         expected, got = f"at most {len(dataclasses.fields(cls))} arguments", show(value)
+    elif kind in ("tuple_type", "list_type"):  # pydantic's words name its Python type: "a valid tuple"
+        expected, got = "a list", show(value)
     else:  # a field without a constrained type of ours: pydantic's own words
         expected, got = err["msg"].removeprefix("Input should be ").rstrip("."), show(value)
     return error.make(source, path, expected, got, hint, keys=keys, owner=getattr(cls, "__name__", None))
@@ -435,8 +437,9 @@ def _build_value(tp: Any, value: Any, path: str) -> Any:
 
 
 def _build_list(cls: type, value: Any, path: str) -> Any:
-    if not isinstance(value, (list, tuple)):
-        return value  # the field's own type refuses it, with its own words
+    if not isinstance(value, (list, tuple)):  # a mapping is one entry written without its list, most often
+        keys = ", ".join(file_keys(cls))
+        raise SchemaError.make("<build>", path, f"a list of mappings with keys {keys}", show(value))
     return tuple(build(cls, v, f"{path}[{i}]", none_is_default=False) for i, v in enumerate(value))
 
 

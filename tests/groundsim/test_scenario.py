@@ -658,6 +658,34 @@ BAD_CASES = [
     ("camera.mount.roll_deg", "ten", "camera.mount.roll_deg", "a number in [-360, 360] deg"),
     ("wind", {"north_mps": 3}, "wind.north_mps", "did you mean 'n_mps'?"),
     ("wind.n_mps", None, "wind.n_mps", "a number in [-100, 100] m/s, got null"),
+    # a mapping where a list of sections is expected: the section's keys, not pydantic's "a valid tuple"
+    ("ir.target_parts", _part(), "ir.target_parts", "expected a list of mappings with keys name, shape, center_frd_m"),
+    (
+        "other_targets",
+        {"motion": {}},
+        "other_targets",
+        "a list of mappings with keys motion, disturbance, target_parts",
+    ),
+    # the scene's fields read as every other field does
+    ("scene", {"clouds": {"feature_size_m": 1e300}}, "scene.clouds.feature_size_m", "in (0, 1e+06] m, got 1e+300"),
+    ("scene", {"clouds": {"cover_fraction": 1.5}}, "scene.clouds.cover_fraction", "a number in [0, 1], got 1.5"),
+    ("scene", {"clouds": {"enabled": "yes"}}, "scene.clouds.enabled", "expected true or false, got 'yes'"),
+    ("scene", {"terrain": {"roof_temperature_k": 45}}, "scene.terrain.roof_temperature_k", "in [150, 400] K, got 45"),
+    ("scene", {"terrain": {"texel_m": 1e5}}, "scene.terrain.field_size_m", "at least two texels (200000 m), got 80.0"),
+    ("scene", {"distractors": {"birds": {"count": 2.0}}}, "scene.distractors.birds.count", "an integer in [0, 1000]"),
+    (
+        "scene",
+        {"distractors": {"aircraft": {"p0_ned_m": [1, 2, 3]}}},
+        "scene.distractors.aircraft",
+        "expected a list of mappings with keys p0_ned_m, v_ned_mps, length_m",
+    ),
+    (
+        "scene",
+        {"distractors": {"aircraft": [{"p0_ned_m": [1e300, 0, 0]}]}},
+        "scene.distractors.aircraft[0].p0_ned_m[0]",
+        "in [-1e+06, 1e+06] m, got 1e+300",
+    ),
+    ("scene", {"sensor": {"ffc": {"mode": "freeze"}}}, "scene.sensor.ffc.mode", "one of frozen, dropped, got 'freeze'"),
 ]
 
 
@@ -723,6 +751,7 @@ IMPLAUSIBLE_IN_A_FILE = [
     ("ir.band_um", [7.5e-6, 13.5e-6], "ir.band_um[0]", "expected a number in [0.5, 100] um, got 7.5e-06"),
     ("frame_rate_hz", 1e-9, "frame_rate_hz", "expected a number in [1, 1000] Hz, got 1e-09"),
     ("target.motion.p0_ned_m", [1e308, 0, -60], "target.motion.p0_ned_m[0]", "in [-1e+06, 1e+06] m, got 1e+308"),
+    ("scene", {"clouds": {"feature_size_m": 1e300}}, "scene.clouds.feature_size_m", "in (0, 1e+06] m, got 1e+300"),
 ]
 
 

@@ -18,9 +18,17 @@ from __future__ import annotations
 import dataclasses
 from typing import Annotated, Any, Literal
 
-from pydantic import Field
-
-from onboard.core.schema import Invalid, SchemaError, build, config_dataclass
+from onboard.core.schema import (
+    Bool,
+    Integer,
+    Invalid,
+    Number,
+    Numbers,
+    SchemaError,
+    Text,
+    build,
+    config_dataclass,
+)
 
 __all__ = [
     "CloudsConfig",
@@ -39,16 +47,31 @@ __all__ = [
     "scene_config_from_dict",
 ]
 
-# field types: a finite float or an int within bounds (strict: a bool is neither, 640.0 is not an int)
-NonNegative = Annotated[float, Field(ge=0.0, allow_inf_nan=False)]
-Positive = Annotated[float, Field(gt=0.0, allow_inf_nan=False)]
-Kelvin = Annotated[float, Field(gt=0.0, le=5000.0, allow_inf_nan=False)]
-Fraction = Annotated[float, Field(ge=0.0, le=1.0, allow_inf_nan=False)]
-Emissivity = Annotated[float, Field(gt=0.0, le=1.0, allow_inf_nan=False)]
-Seed = Annotated[int, Field(ge=0, le=2**63 - 1)]
-Finite = Annotated[float, Field(strict=True, allow_inf_nan=False)]
-Vec3 = Annotated[tuple[Finite, Finite, Finite], Field(strict=False)]  # a YAML list of 3 finite numbers
-TexturePx = Annotated[int, Field(ge=64, le=4096)]
+# field types of the one config system (a bool is not a number, 640.0 is not an int; every error reads
+# "expected <what>"); the bounds are what a real scene holds, far inside what the renderer's arithmetic survives
+#: a length or distance at most, m: 1000 km, beyond any scene a camera sees (a cloud feature of 1e300 m made NaN)
+MAX_SCENE_LENGTH_M = 1e6
+#: a scene speed at most, m/s (Mach 3)
+MAX_SCENE_SPEED_MPS = 1000.0
+#: a temperature span or spread at most, K
+MAX_TEMPERATURE_SPREAD_K = 100.0
+NonNegative = Annotated[float, Number(0.0)]
+Positive = Annotated[float, Number(0.0, lo_open=True)]
+Length = Annotated[float, Number(0.0, MAX_SCENE_LENGTH_M, lo_open=True, unit="m")]
+NonNegativeLength = Annotated[float, Number(0.0, MAX_SCENE_LENGTH_M, unit="m")]
+#: a temperature of the scene (ground, water, cloud, a bird, an aircraft's skin), K: as the scenario's ir section's
+SceneKelvin = Annotated[float, Number(150.0, 400.0, unit="K")]
+#: a hot thing's temperature (an engine, a sun glint's brightness temperature), K
+HotKelvin = Annotated[float, Number(150.0, 5000.0, unit="K")]
+DeltaKelvin = Annotated[float, Number(0.0, MAX_TEMPERATURE_SPREAD_K, unit="K")]
+Fraction = Annotated[float, Number(0.0, 1.0)]
+Emissivity = Annotated[float, Number(0.0, 1.0, lo_open=True)]
+Seed = Annotated[int, Integer(0, 2**63 - 1)]
+Vec3 = Annotated[tuple[float, float, float], Numbers(3, -MAX_SCENE_LENGTH_M, hi=MAX_SCENE_LENGTH_M, unit="m")]
+VelocityVec3 = Annotated[
+    tuple[float, float, float], Numbers(3, -MAX_SCENE_SPEED_MPS, hi=MAX_SCENE_SPEED_MPS, unit="m/s")
+]
+TexturePx = Annotated[int, Integer(64, 4096)]
 
 
 def _model(cls=None, /, **kw):
@@ -70,20 +93,20 @@ class CloudsConfig:
     ``feature_size_m`` is the largest cloud scale, ``texel_m`` the texture's resolution on the plane and
     ``texture_px`` its side (the pattern repeats every ``texel_m * texture_px`` metres)."""
 
-    enabled: bool = False
-    base_altitude_m: Positive = 1500.0
-    thickness_m: Positive = 300.0
+    enabled: Bool = False
+    base_altitude_m: Length = 1500.0
+    thickness_m: Length = 300.0
     cover_fraction: Fraction = 0.5
-    brightness_temperature_k: Kelvin = 268.0
-    sun_edge_warming_k: NonNegative = 6.0
-    texture_k: NonNegative = 0.03
-    sun_azimuth_deg: Annotated[float, Field(ge=-360.0, le=360.0, allow_inf_nan=False)] = 135.0
+    brightness_temperature_k: SceneKelvin = 268.0
+    sun_edge_warming_k: DeltaKelvin = 6.0
+    texture_k: DeltaKelvin = 0.03
+    sun_azimuth_deg: Annotated[float, Number(-360.0, 360.0, unit="deg")] = 135.0
     optical_depth_per_km: NonNegative = 30.0
-    edge_softness: Annotated[float, Field(gt=0.0, le=1.0, allow_inf_nan=False)] = 0.6
-    feature_size_m: Positive = 1500.0
-    texel_m: Positive = 15.0
+    edge_softness: Annotated[float, Number(0.0, 1.0, lo_open=True)] = 0.6
+    feature_size_m: Length = 1500.0
+    texel_m: Length = 15.0
     texture_px: TexturePx = 1024
-    max_range_m: Positive = 30000.0
+    max_range_m: Length = 30000.0
     seed: Seed = 0
 
     def __post_init__(self) -> None:
@@ -111,30 +134,32 @@ class TerrainConfig:
     background difference reads as texture) and smoother at the finest scale than the optics leave it
     (docs/scenes.md, "Terrain sampling")."""
 
-    enabled: bool = False
-    full_resolution: bool = True
-    texel_m: Positive = 0.5
+    enabled: Bool = False
+    full_resolution: Bool = True
+    texel_m: Length = 0.5
     texture_px: TexturePx = 2048
-    field_temperature_k: Kelvin = 296.0
-    field_temperature_spread_k: NonNegative = 3.0
-    field_size_m: Positive = 80.0
-    field_texture_k: NonNegative = 0.05
+    field_temperature_k: SceneKelvin = 296.0
+    field_temperature_spread_k: DeltaKelvin = 3.0
+    field_size_m: Length = 80.0
+    field_texture_k: DeltaKelvin = 0.05
     field_emissivity: Emissivity = 0.95
-    road_temperature_k: Kelvin = 312.0
-    road_width_m: Positive = 7.0
-    road_spacing_m: Positive = 260.0
+    road_temperature_k: SceneKelvin = 312.0
+    road_width_m: Length = 7.0
+    road_spacing_m: Length = 260.0
     road_emissivity: Emissivity = 0.93
-    roof_temperature_k: Kelvin = 318.0
-    building_size_m: Positive = 12.0
-    building_count: Annotated[int, Field(ge=0, le=100_000)] = 150
+    roof_temperature_k: SceneKelvin = 318.0
+    building_size_m: Length = 12.0
+    building_count: Annotated[int, Integer(0, 100_000)] = 150
     roof_emissivity: Emissivity = 0.90
-    water_temperature_k: Kelvin = 286.0
-    lake_radius_m: NonNegative = 110.0
+    water_temperature_k: SceneKelvin = 286.0
+    lake_radius_m: NonNegativeLength = 110.0
     water_emissivity: Emissivity = 0.98
     seed: Seed = 0
 
     def __post_init__(self) -> None:
         tile = self.texel_m * self.texture_px
+        if self.field_size_m < 2.0 * self.texel_m:  # a field a texel across is no field; fewer fields bound the grid
+            raise Invalid("field_size_m", f"at least two texels ({2.0 * self.texel_m:g} m)", self.field_size_m)
         if self.road_width_m >= self.road_spacing_m:
             raise Invalid("road_width_m", f"less than road_spacing_m ({self.road_spacing_m:g} m)", self.road_width_m)
         if 2.0 * self.lake_radius_m >= tile:
@@ -151,15 +176,15 @@ class BirdsConfig:
     at ``speed_mps`` on a circle of 10-60 m radius whose centre is drawn within ``spread_m`` (horizontal)
     and ``spread_m / 4`` (vertical) of ``center_ned_m``."""
 
-    count: Annotated[int, Field(ge=0, le=1000)] = 0
-    wingspan_m: Positive = 0.6
-    body_temperature_k: Kelvin = 311.0
+    count: Annotated[int, Integer(0, 1000)] = 0
+    wingspan_m: Length = 0.6
+    body_temperature_k: SceneKelvin = 311.0
     emissivity: Emissivity = 0.95
     flap_hz: NonNegative = 4.0
     flap_depth: Fraction = 0.7
-    speed_mps: NonNegative = 10.0
+    speed_mps: Annotated[float, Number(0.0, MAX_SCENE_SPEED_MPS, unit="m/s")] = 10.0
     center_ned_m: Vec3 = (150.0, 0.0, -100.0)
-    spread_m: NonNegative = 150.0
+    spread_m: NonNegativeLength = 150.0
     seed: Seed = 0
 
 
@@ -170,11 +195,11 @@ class AircraftConfig:
     ``engine_temperature_k``."""
 
     p0_ned_m: Vec3
-    v_ned_mps: Vec3 = (0.0, 60.0, 0.0)
-    length_m: Positive = 30.0
-    span_m: Positive = 30.0
-    skin_temperature_k: Kelvin = 262.0
-    engine_temperature_k: Kelvin = 480.0
+    v_ned_mps: VelocityVec3 = (0.0, 60.0, 0.0)
+    length_m: Length = 30.0
+    span_m: Length = 30.0
+    skin_temperature_k: SceneKelvin = 262.0
+    engine_temperature_k: HotKelvin = 480.0
 
 
 @_model
@@ -184,8 +209,8 @@ class GlintConfig:
     ``1 - flicker_depth`` and 1 of its peak."""
 
     p_ned_m: Vec3
-    size_m: Positive = 1.5
-    brightness_temperature_k: Kelvin = 420.0
+    size_m: Length = 1.5
+    brightness_temperature_k: HotKelvin = 420.0
     flicker_hz: NonNegative = 3.0
     flicker_depth: Fraction = 0.8
 
@@ -215,11 +240,11 @@ class CrossoverConfig:
     while, as around dawn and dusk.  Scaling the difference is the same as moving every part's radiance
     towards the background's along the straight line between them."""
 
-    enabled: bool = False
+    enabled: Bool = False
     start_s: NonNegative = 2.0
     ramp_s: Positive = 2.0
     hold_s: NonNegative = 1.0
-    end_gain: Annotated[float, Field(ge=-1.0, le=1.0, allow_inf_nan=False)] = -0.5
+    end_gain: Annotated[float, Number(-1.0, 1.0)] = -0.5
 
     def gain(self, t_s: float) -> float:
         """The gain on the target's signal at ``t_s`` (1 when disabled)."""
@@ -246,8 +271,8 @@ class AgcConfig:
     min-max map by ``linear_fraction``, the slope capped at ``max_gain`` 8-bit levels per count; the
     map follows the scene with time constant ``time_constant_s`` (its frame-to-frame gain changes)."""
 
-    enabled: bool = False
-    plateau_fraction: Annotated[float, Field(gt=0.0, le=1.0, allow_inf_nan=False)] = 0.01
+    enabled: Bool = False
+    plateau_fraction: Annotated[float, Number(0.0, 1.0, lo_open=True)] = 0.01
     linear_fraction: Fraction = 0.2
     max_gain: Positive = 2.0
     time_constant_s: NonNegative = 0.3
@@ -260,12 +285,12 @@ class FpnConfig:
     (the core warms): the pattern grows by ``drift_counts_per_s`` (1 sigma) per second since the last
     flat-field correction, which resets it to ``residual_fraction`` of the static pattern."""
 
-    enabled: bool = False
+    enabled: Bool = False
     column_sigma_counts: NonNegative = 6.0
     pixel_offset_sigma_counts: NonNegative = 4.0
-    pixel_gain_sigma: Annotated[float, Field(ge=0.0, le=0.5, allow_inf_nan=False)] = 0.02
-    dead_pixels: Annotated[int, Field(ge=0, le=100_000)] = 6
-    hot_pixels: Annotated[int, Field(ge=0, le=100_000)] = 6
+    pixel_gain_sigma: Annotated[float, Number(0.0, 0.5)] = 0.02
+    dead_pixels: Annotated[int, Integer(0, 100_000)] = 6
+    hot_pixels: Annotated[int, Integer(0, 100_000)] = 6
     drift_counts_per_s: NonNegative = 0.5
     residual_fraction: Fraction = 1.0
 
@@ -276,11 +301,11 @@ class FfcConfig:
     ``frames`` frames, which are ``frozen`` (the last image repeated) or ``dropped`` (no image); after
     it the drifted offsets step back (see :class:`FpnConfig`)."""
 
-    enabled: bool = False
+    enabled: Bool = False
     period_s: Positive = 20.0
     first_s: NonNegative = 20.0
-    frames: Annotated[int, Field(ge=1, le=1000)] = 6
-    mode: Literal["frozen", "dropped"] = "frozen"
+    frames: Annotated[int, Integer(1, 1000)] = 6
+    mode: Annotated[Literal["frozen", "dropped"], Text()] = "frozen"
 
 
 @_model
@@ -288,8 +313,8 @@ class VignettingConfig:
     """Signal falling off towards the corners: gain ``1 - (1 - corner_gain) r^2`` with r the distance
     from the principal point over the distance to the farthest corner."""
 
-    enabled: bool = False
-    corner_gain: Annotated[float, Field(gt=0.0, le=1.0, allow_inf_nan=False)] = 0.85
+    enabled: Bool = False
+    corner_gain: Annotated[float, Number(0.0, 1.0, lo_open=True)] = 0.85
 
 
 @_model
@@ -298,10 +323,10 @@ class SensorConfig:
     radiance of the renderer's ``t_min_k``, ``counts_at_t_max`` at ``t_max_k``, linear in radiance), with
     NETD noise, then fixed-pattern noise, vignetting, flat-field events, and the AGC 8-bit output."""
 
-    enabled: bool = False
-    raw_bits: Annotated[int, Field(ge=8, le=16)] = 14
-    counts_at_t_min: Annotated[int, Field(ge=0, le=65535)] = 2000
-    counts_at_t_max: Annotated[int, Field(ge=1, le=65535)] = 14000
+    enabled: Bool = False
+    raw_bits: Annotated[int, Integer(8, 16)] = 14
+    counts_at_t_min: Annotated[int, Integer(0, 65535)] = 2000
+    counts_at_t_max: Annotated[int, Integer(1, 65535)] = 14000
     agc: AgcConfig = dataclasses.field(default_factory=AgcConfig)
     fpn: FpnConfig = dataclasses.field(default_factory=FpnConfig)
     ffc: FfcConfig = dataclasses.field(default_factory=FfcConfig)
