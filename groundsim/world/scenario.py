@@ -662,13 +662,19 @@ class ScenarioFile:
         for i, name in enumerate(names):
             if name in names[:i]:
                 raise Invalid(f"observers[{i}].name", "a name not used by an earlier observer", name)
+        # the default case too: a noise-case file without it would otherwise fail the first run, naming an option
+        # nobody gave rather than this file
         named = [("nav_noise", self.nav_noise)]
         named += [(f"observers[{i}].nav_noise", o.nav_noise) for i, o in enumerate(self.observers)]
+        cases = tuple(load_noise_cases())
         for field_path, case in named:
-            if case is not None and case != DEFAULT_NAV_NOISE:
-                cases = tuple(load_noise_cases())
-                if case not in cases:
-                    raise Invalid(field_path, "one of " + ", ".join(cases), case, did_you_mean(case, cases))
+            if case is not None and case not in cases:
+                hint = did_you_mean(case, cases)
+                if case == DEFAULT_NAV_NOISE:
+                    hint = f"the default case, which {noise_cases_path()} does not define" + (
+                        f"; {hint}" if hint else ""
+                    )
+                raise Invalid(field_path, "one of " + ", ".join(cases), case, hint)
         self._check_noise_bank()
 
     def _check_noise_bank(self) -> None:

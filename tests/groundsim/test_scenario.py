@@ -765,6 +765,23 @@ def test_an_implausible_value_in_a_file_names_the_file_and_the_field(tmp_path, k
     assert err.exit_code == 2
 
 
+@pytest.mark.parametrize("given", [False, True])
+def test_the_default_nav_noise_is_checked_at_load_naming_the_scenario_file(tmp_path, monkeypatch, given):
+    """A noise-case file without the default case (RTK) failed the first run, naming an option never given."""
+    import groundsim.world.scenario as scenario_module
+
+    cases = {n: c for n, c in load_noise_cases().items() if n != "RTK"}
+    monkeypatch.setattr(scenario_module, "load_noise_cases", lambda: cases)
+    d = p1_dict()
+    d.pop("nav_noise", None)
+    if given:
+        d["nav_noise"] = "RTK"
+    path = tmp_path / "x.yaml"
+    path.write_text(yaml.safe_dump(d))
+    err = _one_line_error(load_scenario, path, f"{path}: nav_noise: expected one of ", "got 'RTK'; the default case")
+    assert err.field == "nav_noise" and "noise_cases.yaml does not define" in str(err)
+
+
 def test_missing_file_and_directory(tmp_path):
     with pytest.raises(ScenarioError, match=r"nope\.yaml: \(file\): expected an existing file, got no such file$"):
         load_scenario(tmp_path / "nope.yaml")
