@@ -72,6 +72,7 @@ def _objects_message(frame: IrFrame) -> dict:
         "time_boot_us": int(frame.time_boot_us),
         "time_unix_us": None,
         "time_unix_sigma_us": None,
+        "compensated_us": 0,
         "frame_index": int(frame.seq),
         "primary_id": 1,
         "objects": objects,

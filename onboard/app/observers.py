@@ -59,16 +59,21 @@ class FrameResult:
     imaging_pose: Any = NOT_LOOKED_UP
 
 
-def frame_objects(tracker: Any, track: Track | None) -> dict[str, Any] | None:
-    """The ``irtrack.objects/1`` message of the frame ``tracker`` (the pipeline's image chain) just took and
-    ``track`` came of (:func:`onboard.imaging.objects.objects_message`, stamped with the frame's capture time);
-    None when the chain tracks one object only (no ``last_objects``) or the frame got no track (refused)."""
-    upd = getattr(tracker, "last_objects", None)
+def frame_objects(pipeline: Any, track: Track | None) -> dict[str, Any] | None:
+    """The ``irtrack.objects/1`` message of the frame ``pipeline``'s image chain just took and ``track`` came of
+    (:func:`onboard.imaging.objects.objects_message`, stamped with the frame's capture time and compensation);
+    None when the chain tracks one object only (no ``last_objects``) or the frame got no track (refused).  Its lines
+    of sight are null where the track's would be for want of a pose or while the pipeline withholds the geometry
+    (``withheld_because``): the chain's rotation is then its last one, or one the daemon calls wrong."""
+    upd = getattr(pipeline.tracker, "last_objects", None)
     if upd is None or track is None:
         return None
     from onboard.imaging.objects import objects_message
 
-    return objects_message(upd, track.time_boot_us, track.time_unix_us, track.time_unix_sigma_us)
+    rays = track.pose_valid and not getattr(pipeline, "withheld_because", ())
+    return objects_message(
+        upd, track.time_boot_us, track.time_unix_us, track.time_unix_sigma_us, track.compensated_us, rays
+    )
 
 
 class FrameObserver(Protocol):

@@ -597,7 +597,7 @@ def replay(
             finally:
                 if live is not None:
                     live.on_pose(frame, poses.pose)
-            objects = frame_objects(pipe.tracker, track)
+            objects = frame_objects(pipe, track)
             if live is not None:
                 live.on_track(track)
                 if objects is not None:

@@ -446,7 +446,7 @@ class OnboardService:
             self.queue_wait_ms.add((self._clock_ns() - received_ns) / 1e6)
             track = self._process(frame, received_ns)
             payload = self._publish_track(track) if track is not None and publish else None
-            objects = frame_objects(self.pipeline.tracker, track)  # the objects chain's, for zenoh and the taps
+            objects = frame_objects(self.pipeline, track)  # the objects chain's, for zenoh and the taps
             if objects is not None and publish and self._objects_pub is not None:
                 self._publish_objects(objects)
             looked_up, pose, imaging_pose = (

@@ -192,6 +192,10 @@ JSON_SCHEMAS: dict[str, dict[str, Any]] = {
                 "time_boot_us": {"type": "integer"},
                 "time_unix_us": {"type": ["integer", "null"], "description": "the frame's UTC, us; null until mapped"},
                 "time_unix_sigma_us": {"type": ["integer", "null"], "description": "1-sigma of time_unix_us, us"},
+                "compensated_us": {
+                    "type": "integer",
+                    "description": "the lines of sight are of time_boot_us minus this (the camera's latency), us",
+                },
                 "frame_index": {"type": "integer", "description": "the image chain's frame count, from 0"},
                 "primary_id": {"type": ["integer", "null"], "description": "the selected target's id"},
                 "objects": {
@@ -204,8 +208,12 @@ JSON_SCHEMAS: dict[str, dict[str, Any]] = {
                             "u_px": {"type": "number", "description": "centre, pixels, 3 decimals"},
                             "v_px": {"type": "number", "description": "centre, pixels, 3 decimals"},
                             "box_px": {**_BOX, "description": "x, y, w, h px, 2 decimals"},
-                            "los_ned": {**_VEC3, "description": "unit line of sight, local NED, 7 decimals"},
-                            "los_sigma_rad": {"type": "number"},
+                            "los_ned": {
+                                **_VEC3,
+                                "description": "unit line of sight, local NED, 7 decimals; null without a pose or "
+                                "while the geometry is withheld",
+                            },
+                            "los_sigma_rad": {"type": ["number", "null"], "description": "its 1-sigma, rad"},
                             "score": {"type": "number", "description": "contrast over the local threshold, 3 decimals"},
                             "primary": {"type": "boolean"},
                         },
@@ -223,7 +231,16 @@ JSON_SCHEMAS: dict[str, dict[str, Any]] = {
                     },
                 },
             },
-            ["schema", "time_boot_us", "time_unix_us", "time_unix_sigma_us", "frame_index", "primary_id", "objects"],
+            [
+                "schema",
+                "time_boot_us",
+                "time_unix_us",
+                "time_unix_sigma_us",
+                "compensated_us",
+                "frame_index",
+                "primary_id",
+                "objects",
+            ],
         ),
         _object_schema(
             TRUTH_OBJECTS_SCHEMA,

@@ -59,7 +59,7 @@ def _record(path, n: int = N_FRAMES):
             rx_ns = 1_000_000_000 + k * 33_000_000
             tap.on_received(frame, rx_ns)
             track = rig.pipe.process(frame, rx_ns)
-            objects = frame_objects(rig.pipe.tracker, track)
+            objects = frame_objects(rig.pipe, track)
             looked_up, pose, imaging_pose = memo.take_lookups()
             tap.on_frame(frame, FrameResult(rx_ns, looked_up, pose, track, None, objects, imaging_pose))
             sent.append(objects)
@@ -342,3 +342,26 @@ def test_every_json_message_of_the_recording_conforms_to_its_embedded_schema(rec
                 objects_seqs.append(message.sequence)
     assert {"irtrack.objects/1", "irtrack.frame_input/1", "irtrack.track/2"} <= seen
     assert annotated == objects_seqs == list(range(N_FRAMES))
+
+
+def test_the_objects_rays_are_withheld_with_the_tracks_and_say_their_compensation():
+    """While the daemon withholds the geometry (a camera or gimbal mismatch) the track had no line of sight but every
+    object kept its los_ned (a direction the daemon itself called wrong); and the objects' rays, looked up at the
+    frame's time less the camera's compensation, did not say so, as the track does (compensated_us)."""
+    config = build_config({"imaging": {"chain": "objects"}, "estimator": {"enabled": False}})
+    rig = Rig(estimator=None, config=config)
+    rays = []
+    for k in range(30):
+        if k == 20:
+            rig.pipe.withheld_because = ("camera_mismatch",)
+        track = rig.step(k)
+        msg = frame_objects(rig.pipe, track)
+        assert msg is not None and msg["compensated_us"] == track.compensated_us
+        rays.append(([o["los_ned"] for o in msg["objects"]], [o["los_sigma_rad"] for o in msg["objects"]], track))
+    before = [r for r in rays[10:20] if r[0]]
+    assert before and all(los is not None for los_list, _, _ in before for los in los_list)
+    after = rays[20:]
+    assert any(los_list for los_list, _, _ in after)  # the objects are still there, their pixels published
+    assert all(los is None for los_list, _, _ in after for los in los_list)
+    assert all(s is None for _, sigmas, _ in after for s in sigmas)
+    assert all(track.los is None for _, _, track in after)
