@@ -1,11 +1,12 @@
 """FOLLOW_TARGET (#144) for an autopilot's follow mode, from the estimator's 3-D track; pure.
 
 common.xml FOLLOW_TARGET (encoded by :class:`onboard.io.mavlink_wire.FollowTarget`): ``timestamp`` (ms
-since boot; here the frame's capture time on the autopilot's boot clock, ``Track.time_boot_us`` / 1000),
+since boot; here the time the position is of on the autopilot's boot clock: the frame's capture time less the
+camera's measured latency, ``(Track.time_boot_us - Track.compensated_us) / 1000``),
 ``est_capabilities`` (bit positions: POS 0, VEL 1, ACCEL 2, ATT + RATES 3: here POS, and VEL when the
 estimate's velocity has a covariance), ``lat`` / ``lon`` (degE7), ``alt`` (m AMSL; our altitude is
 ellipsoidal = AMSL, see :mod:`onboard.core.frames`), ``vel`` (m/s NED; (0, 0, 0) = unknown, sent
-without the VEL bit), ``acc`` (unknown: 0), ``attitude_q`` (unknown: (0, 0, 0, 0)), ``rates`` (unknown:
+without the VEL bit), ``acc`` (unknown: 0), ``attitude_q`` (unknown: (1, 0, 0, 0)), ``rates`` (unknown:
 0), ``position_cov`` ("eph epv": 1-sigma horizontal and vertical position accuracy in m, the same
 root-sum-squares of the covariance as #276's ``h_acc`` / ``v_acc``; the third element 0),
 ``custom_state`` 0.
@@ -48,7 +49,8 @@ def follow_target(track: Track | None) -> FollowTarget | None:
     # a velocity without a (finite) covariance is not vouched for: sent as common.xml's "unknown"
     vel_known = track.cov_v_ned_m2ps2 is not None
     return FollowTarget(
-        time_boot_us=track.time_boot_us,
+        # the position's own time: the track's line of sight and 3-D are of the stamp less the compensation
+        time_boot_us=track.time_boot_us - track.compensated_us,
         lat_deg=f["lat_deg"],
         lon_deg=f["lon_deg"],
         alt_m=float(f["alt_m"]),

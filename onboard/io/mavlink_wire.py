@@ -30,7 +30,7 @@ COMMAND_LONG (#76)                     :func:`set_message_interval_message` (MAV
 COMMAND_ACK (#77)                      :func:`command_ack_message`
 FOLLOW_TARGET (#144)                   timestamp (ms) <- ``time_boot_us``; lat, lon (degE7); alt (m AMSL);
 :class:`FollowTarget`                  vel (m/s NED) <- ``v_ned_mps``; position_cov[0:2] <- ``h_acc_m``, ``v_acc_m``;
-                                       acc, attitude_q, rates all zeros (unknown); est_capabilities POS, VEL only
+                                       acc, rates zeros, attitude_q (1, 0, 0, 0): unknown; est_capabilities POS, VEL only
 SET_POSITION_TARGET_LOCAL_NED (#84)    time_boot_ms <- ``time_boot_us``; MAV_FRAME_LOCAL_NED; type_mask: velocity only
 :class:`SetPositionTargetLocalNed`     (position, acceleration, yaw, yaw rate ignored); vx, vy, vz (m/s) <- ``v_ned_mps``
 CAMERA_TRACKING_IMAGE_STATUS (#275)    normalised image coordinates (x 0 = left .. 1 = right, y 0 = top ..
@@ -836,8 +836,8 @@ class SetPositionTargetLocalNed:
 class FollowTarget:
     """FOLLOW_TARGET (#144): the target at ``time_boot_us`` (ms on the wire), WGS84 ``lat_deg`` / ``lon_deg``,
     ``alt_m`` (AMSL), ``v_ned_mps``, 1-sigma ``h_acc_m`` / ``v_acc_m`` (position_cov's "eph epv"; third
-    element 0); acceleration, attitude and rates unknown: common.xml's "unknown" values, all zeros
-    (``acc`` (0, 0, 0), ``attitude_q`` (0, 0, 0, 0), ``rates`` (0, 0, 0)).  ``est_capabilities`` bits
+    element 0); acceleration, attitude and rates unknown: common.xml's "unknown" values (``acc`` (0, 0, 0),
+    ``attitude_q`` (1, 0, 0, 0), ``rates`` (0, 0, 0)).  ``est_capabilities`` bits
     POS 0, VEL 1 (ACCEL 2 and ATT + RATES 3 never: we estimate neither); without VEL the velocity
     must be (0, 0, 0), common.xml's "unknown"."""
 
@@ -867,7 +867,7 @@ class FollowTarget:
             _num(m, "alt_m", self.alt_m, -1e6, 1e6),
             vel,
             [0.0, 0.0, 0.0],
-            [0.0, 0.0, 0.0, 0.0],
+            [1.0, 0.0, 0.0, 0.0],  # common.xml: "(1 0 0 0 for unknown)"
             [0.0, 0.0, 0.0],
             [_num(m, "h_acc_m", self.h_acc_m, 0.0), _num(m, "v_acc_m", self.v_acc_m, 0.0), 0.0],
             0,
