@@ -243,6 +243,7 @@ def score_track(t_s, truth_p_ned_m, cam_p_ned_m, est_p_ned_m, est_cov_ned_m2, ob
     ``err_range_final_pct``: at the last frame (NaN without an estimate there); ``rmse_observable_m``,
     ``rmse_published_settled_m``; ``observable_share_settled``: observable / all frames at t >= settle_s;
     ``beyond_3sigma_published``: fraction of finite estimates with ||e|| > 3 sqrt(trace cov);
+    ``beyond_3sigma_observable``: the same over the observable ones (the confident wrong positions; NaN without);
     ``nees_observable`` / ``nees_published_settled``: mean e^T P^-1 e (3 when consistent);
     ``first_observable_s``.  Missing figures are NaN.
     """
@@ -290,6 +291,7 @@ def score_track(t_s, truth_p_ned_m, cam_p_ned_m, est_p_ned_m, est_cov_ned_m2, ob
         "rmse_observable_m": rms(obs),
         "rmse_published_settled_m": rms(pub_late),
         "beyond_3sigma_published": float(np.mean(e[has] > sig3[has])) if has.any() else nan,
+        "beyond_3sigma_observable": float(np.mean(e[obs] > sig3[obs])) if obs.any() else nan,
         "nees_observable": mean_finite(nees[obs]),
         "nees_published_settled": mean_finite(nees[pub_late]),
         "first_observable_s": float(rel_t[obs][0]) if obs.any() else nan,

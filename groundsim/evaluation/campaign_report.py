@@ -74,6 +74,7 @@ COLUMN_ORDER = (
     "rmse_published_settled_m",
     "observable_share_settled",
     "beyond_3sigma_published",
+    "beyond_3sigma_observable",
     "nees_observable",
     "nees_published_settled",
     "first_observable_s",

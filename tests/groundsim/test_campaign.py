@@ -240,6 +240,13 @@ def test_score_track_figures_on_a_constructed_track():
     assert s["first_observable_s"] == pytest.approx(7.0) and s["settle_s"] == 5.0
     cov_small = np.tile(np.eye(3) * 0.01, (F, 1, 1))
     assert score_track(t, truth, cam, est, cov_small, obs)["beyond_3sigma_published"] == 1.0
+    # confident and wrong only where observable: the tight covariance on frames 20-69, honest ones from 70 on
+    mixed = np.where(np.arange(F)[:, None, None] < 70, cov_small, cov)
+    m = score_track(t, truth, cam, est, mixed, obs)
+    assert m["beyond_3sigma_published"] == pytest.approx(50 / 80) and m["beyond_3sigma_observable"] == 0.0
+    m = score_track(t, truth, cam, est, np.where(np.arange(F)[:, None, None] < 70, cov, cov_small), obs)
+    assert m["beyond_3sigma_published"] == pytest.approx(30 / 80) and m["beyond_3sigma_observable"] == 1.0
+    assert math.isnan(score_track(t, truth, cam, est, cov, np.zeros(F, dtype=bool))["beyond_3sigma_observable"])
 
 
 # --------------------------------------------------------------------------- the log and resumability
