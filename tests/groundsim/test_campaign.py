@@ -218,6 +218,11 @@ def test_the_shipped_example_spec_is_valid():
     assert spec.mode == "synthetic" and set(spec.algorithms) == {"map", "paper", "rpekf"} and len(spec.geometries) == 3
 
 
+def test_the_shipped_honesty_spec_plans_the_runs_its_header_says():
+    spec = load_spec(REPO / "config/campaigns/honesty.yaml")
+    assert spec.run_count == len(plan_runs(spec, "x")) == 1944 and spec.algorithms == ("map",)
+
+
 # --------------------------------------------------------------------------- scoring
 
 
