@@ -295,15 +295,17 @@ def write_report(out: Path, spec: CampaignSpec, rows: list[dict], run_info: dict
             if at_ref
             else "No run at the reference geometry: medians over every geometry of the campaign."
         )
-        + " Medians over runs. *observable*: err/range on the frames the algorithm called observable; *published*: "
+        + " Medians over the runs that have the figure (a run with no observable frame has no err/range observable)."
+        " *observable*: err/range on the frames the algorithm called observable; *published*: "
         "every finite estimate once *settled* (from 5 s on; half the run if shorter than 10 s); *final*: last frame. Honest: runs with at most 1 % of published "
-        "estimates beyond 3 sqrt(trace cov). CRB: Bayesian bound at the truth (RMS over the window).\n"
+        "estimates beyond 3 sqrt(trace cov), from the first frame (NEES (published) is over the settled ones). CRB: "
+        "Bayesian bound at the truth (RMS over the window); CRB range sigma: its median range sigma over range.\n"
     )
     for a in dict.fromkeys(r["algorithm"] for r in t2):
         L.append(f"### {a}\n")
         L += markdown_head(
             "| scenario | noise | runs | paper Table 2 | err/range observable | err/range published | final | "
-            "RMSE m (published) | observable share (settled) | honest | NEES (published) | CRB RMS m | "
+            "RMSE m (published) | observable share (settled) | honest | NEES (published, settled) | CRB RMS m | "
             "CRB range sigma | batch MAP err/range |"
         )
         for r in (x for x in t2 if x["algorithm"] == a):

@@ -351,7 +351,7 @@ def format_perception(runs: list[dict]) -> str:
         return " / ".join("-" if v is None else fmt.format(v) for v in vals)
 
     lines = _table_head(
-        "| scenario | navigation errors | seeds | Pd, visible objects >= 3 NETD after 1 s (>= 95 %) | "
+        "| scenario | navigation errors | seed(s) | Pd, visible objects >= 3 NETD after 1 s (>= 95 %) | "
         "false tracks a minute (<= 1) | id switches | selected target's state accuracy (Anti-UAV SA) |"
     )
     for (name, nav), rows in groups.items():

@@ -306,7 +306,8 @@ DEFINITIONS = {
     "observable after 5 s": "observable frames / all frames after the first 5 s",
     "ratio": "online track: image chain err/range / perfect-centroid err/range, both on the frames where both are "
     "observable (median over seeds of each, then the ratio); batch ratio: the same for the whole-flight "
-    "smoother on all frames with a centroid; the goal is <= 1.5 (the verdict needs every ratio available)",
+    "smoother on all frames with a centroid; the goal is <= 1.5 (the verdict needs every ratio whose baseline is "
+    "sound: a ratio whose perfect-centroid baseline failed, or a batch not run, is left out and said)",
     "CRB": "Bayesian Cramer-Rao bound of the flown trajectory (RMS over the flight of sqrt(trace)), with the "
     "simulated noise (the baseline's pixel noise and the run's navigation-error case) and the motion prior the batch estimator selected "
     "on perfect centroids",

@@ -280,7 +280,8 @@ def summarise(scores: list[dict]) -> list[dict]:
     and their verdict.  ``label`` is the scenario's name, or ``<scenario>_<nav case>`` when the runs
     mix navigation cases.  A ratio gets no verdict when its baseline failed (perfect centroids
     unobservable or worse than ``BASELINE_FAIL_PCT`` err / range): ``baseline_failed`` /
-    ``batch_baseline_failed`` say so, and ``within_ratio`` is None when no ratio has a sound baseline.
+    ``batch_baseline_failed`` say so (``batch_baseline_failed`` None: no batch was run), and ``within_ratio`` is
+    None when no ratio has a sound baseline.
     """
     keys: list[tuple[str, str]] = []
     for s in scores:
@@ -306,7 +307,8 @@ def summarise(scores: list[dict]) -> list[dict]:
         bo, bp = row["batch_err_range_pct"], row["batch_perfect_err_range_pct"]
         row["batch_ratio_to_perfect"] = (bo / bp) if (bo is not None and bp not in (None, 0.0)) else None
         row["baseline_failed"] = _baseline_failed(row["perfect_err_range_pct"])
-        row["batch_baseline_failed"] = _baseline_failed(bp)
+        # no batch at all (eval --no-batch): not run, which is not a failed baseline
+        row["batch_baseline_failed"] = None if bo is None and bp is None else _baseline_failed(bp)
         ratios = [
             x
             for x, failed in (

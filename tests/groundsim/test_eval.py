@@ -471,6 +471,8 @@ def test_summarise_medians_ratios_and_verdict():
     b = rows["B"]
     assert b["ratio_to_perfect"] == pytest.approx(2.0, rel=1e-9) and b["batch_ratio_to_perfect"] is None
     assert b["within_ratio"] is False
+    # no batch run (eval --no-batch): not a failed baseline, and the verdict line does not say it failed
+    assert a["batch_baseline_failed"] is False and b["batch_baseline_failed"] is None
 
 
 def test_the_share_observable_at_the_bound_counts_the_half_seconds_after_5_s():
