@@ -216,7 +216,7 @@ def format_closed_loop(summary: list[dict]) -> str:
         "| scenario | navigation errors | published 3-D position, tracking frames after 3 s (>= 95 %) | "
         "published beyond 3 sigma (<= 1 %); its ellipsoid | observable, frames after 5 s (>= 60 %; P2 40 %) | "
         "median err / range, observable frames (<= 2 %) | median err / range, all published after 5 s | "
-        "first observable s | centroid sigma px (chain; baseline) | observable after 5 s at the bound |"
+        "first observable s | centroid sigma px per axis (chain; baseline) | observable after 5 s at the bound |"
     )
     for r in summary:
         obs_goal = g["observable"].get(r["scenario"], g["observable_default"])
@@ -321,7 +321,8 @@ DEFINITIONS = {
     "explanation (P1's mirror target) can fall short of it",
     "batch": "whole-flight MAP smoother with model selection on the pipeline's centroids (and on perfect centroids);"
     " a flight over 60 s in windows of 60 s, one every 30 s (model 'mixed' when they chose different ones)",
-    "medians": "every table figure is the median over seeds",
+    "medians": "every figure of the scenario tables is the median over seeds (the runs table is per run, the "
+    "perception table lists each seed's)",
 }
 
 
@@ -606,7 +607,7 @@ def _markdown(report: dict, descriptions: dict, result) -> str:
     L.append("")
     L += markdown_head(
         "| scenario | all frames with an estimate: err / range | RMSE m | 2-D continuity | first observable s | "
-        "centroid error RMS px | perfect-centroid continuity | APE RMSE m (TUM, evo way) | runs failed | reference study: best MAP / CRB m (px0.3) |"
+        "centroid error RMS px (2-D) | perfect-centroid continuity | APE RMSE m (TUM, evo way) | runs failed | reference study: best MAP / CRB m (px0.3) |"
     )
     for r in report["summary"]:
         ref = REFERENCE_PX03.get(r["scenario"])

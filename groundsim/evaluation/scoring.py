@@ -149,11 +149,12 @@ def score_run(r) -> dict:
     out["common_frames"] = int(common.sum())
     out["online_common_err_range_pct"] = None if on_c is None else on_c["err_range_pct"]
     out["perfect_common_err_range_pct"] = None if pf_c is None else pf_c["err_range_pct"]
-    out["continuity"] = float(obs.sum() / F) if F else 0.0
+    # None, not 0, where there is nothing to measure (no frame; the target never in the image): shown as '-'
+    out["continuity"] = float(obs.sum() / F) if F else None
     out["estimate_fraction"] = float(has.sum() / F) if F else 0.0
     out["perfect_continuity"] = float(base_obs.sum() / F) if F else 0.0
     vis = int(r.visible.sum())
-    out["continuity_2d"] = float((r.measurement_valid & r.visible).sum() / vis) if vis else 0.0
+    out["continuity_2d"] = float((r.measurement_valid & r.visible).sum() / vis) if vis else None
     first = np.flatnonzero(obs)
     out["first_observable_s"] = float(r.t_s[first[0]] - r.t_s[0]) if first.size else None
     first_m = np.flatnonzero(r.measurement_valid)

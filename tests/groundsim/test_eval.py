@@ -451,6 +451,8 @@ def test_score_run_without_observable_frames_and_a_failed_run():
     run = _synthetic_run(obs_from=40)  # never observable
     s = score_run(run)
     assert s["online_observable"] is None and s["continuity"] == 0.0 and s["first_observable_s"] is None
+    # the target never in the image: no 2-D continuity to measure ('-' in the report), not 0 %
+    assert score_run(dataclasses.replace(run, visible=np.zeros(len(run.t_s), bool)))["continuity_2d"] is None
     failed = dataclasses.replace(run, error="FlightError: boom")
     assert score_run(failed) == {"scenario": "S1", "seed": 0, "error": "FlightError: boom"}
 
