@@ -216,8 +216,9 @@ def plot_frame(path, frame: dict, title: str = "") -> Path:
         az.set_xlim(tu - half, tu + half)
         az.set_ylim(tv + half, tv - half)
     _legend(az, fontsize=8, loc="lower right")
-    ax.set_xlabel("u px")
-    ax.set_ylabel("v px")
+    for a in (ax, az):
+        a.set_xlabel("u px")
+        a.set_ylabel("v px")
     az.set_title("zoom on the target")
     ax.set_title(
         f"frame {frame['k']} at t = {frame['t_s']:.2f} s, state {frame.get('state')}, range {frame['range_m']:.0f} m"
@@ -256,6 +257,11 @@ def plot_performance(path, summary_perf: list[dict], latencies: dict[str, np.nda
                 label=f"{name} (p50 {np.percentile(lat, 50):.1f} ms)",
             )
     a1.set_xscale("log")
+    # plain numbers on the log axis (1, 2, 5, 10 ms), not matplotlib's minor labels "3x10^0"
+    from matplotlib.ticker import FuncFormatter
+
+    a1.xaxis.set_major_formatter(FuncFormatter(lambda x, _pos: f"{x:g}"))
+    a1.xaxis.set_minor_formatter(FuncFormatter(lambda x, _pos: f"{x:g}" if f"{x:.1g}"[0] in "25" else ""))
     a1.set_xlabel("pipeline processing per frame, ms (imaging + pose + estimator)")
     a1.set_ylabel("frames")
     a1.grid(True, which="both", alpha=0.3)
