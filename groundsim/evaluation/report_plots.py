@@ -120,6 +120,20 @@ def plot_errors(path, run, title: str = "") -> Path:
         lim = max(1.0, 3.0 * float(np.percentile(finite, 95))) if finite.size else 1.0
         ax.set_ylim(-lim, lim)
         _mark_clipped(ax, t, ek, lim, "m", "observable" if obs.any() else "estimated")
+        with np.errstate(invalid="ignore"):
+            wide = int(np.sum(sk > lim))
+        if wide:  # the band runs off the axis: said, so a cut band is not read as its edge
+            ax.text(
+                0.995,
+                0.04,
+                f"1 sigma beyond the axis on {wide} frame{'s' if wide > 1 else ''} (up to {np.nanmax(sk):.3g} m)",
+                transform=ax.transAxes,
+                ha="right",
+                fontsize=7,
+                color="tab:red",
+                bbox=dict(boxstyle="round,pad=0.2", fc="white", ec="0.7", alpha=0.85),
+                zorder=5,
+            )
         ax.grid(True, alpha=0.3)
     _legend(axes[0], fontsize=8, loc="upper right", ncol=3)
     ax = axes[3]
