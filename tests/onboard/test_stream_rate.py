@@ -58,3 +58,23 @@ def test_slow_only_after_the_rate_was_confirmed_and_for_a_few_seconds():
     m.reset()
     t4 = _feed(m, t3, 6, 20, 25)
     assert m.slow(t4, m.rates(t4)) == []  # re-requested: not confirmed again yet
+
+
+def test_a_stream_that_stopped_is_not_slow():
+    """A simulator that ended: its streams' rates over the window, the silence included, fell under half the requested
+    rate and were warned as an autopilot capping them (stream_rate_low), 2.5 s after the end of every simulated run.
+    Silence is the link's to say (no_mavlink, autopilot_lost)."""
+    m = _meter()
+    t = _feed(m, 0.0, 1, 100, 25)
+    m.confirmed(ATT, t)
+    m.confirmed(POS, t)
+    t = _feed(m, t, 6, 100, 25)
+    assert m.slow(t, m.rates(t)) == []
+    t = _feed(m, t, 4, 0, 0)  # stopped: 20 Hz and 5 Hz over the last 5 s
+    rates = {r.msg_id: r.measured_hz for r in m.rates(t)}
+    assert rates[ATT] == pytest.approx(20.0, abs=HZ_TOL) and rates[POS] == pytest.approx(5.0, abs=HZ_TOL)
+    assert m.slow(t, m.rates(t)) == []
+    t = _feed(m, t, 6, 20, 25)  # back, the attitude capped: slow again
+    assert [r.msg_id for r in m.slow(t, m.rates(t))] == [ATT]
+    t = _feed(m, t, 6, 100, 0)  # the position alone silent while the attitude arrives: slow (0 Hz)
+    assert [r.msg_id for r in m.slow(t, m.rates(t))] == [POS]
