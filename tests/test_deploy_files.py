@@ -485,6 +485,7 @@ def test_compose_groundsim_command(compose):
     cmd = sim["command"]
     assert cmd[0] == "run"
     assert _opt(cmd, "--rate") == ["realtime"]
+    assert _opt(cmd, "--duration") == ["30"], "long enough for an observable 3-D track (README, Use it)"
     assert _opt(cmd, "--mavlink") == ["udpout:127.0.0.1:14540"]
     assert _opt(cmd, "--zenoh-connect") == ["tcp/127.0.0.1:7447"]
     from groundsim.world.nav_errors import resolve_nav_noise
