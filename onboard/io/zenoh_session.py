@@ -330,6 +330,36 @@ def _top_level_kind(path: str) -> str | None:
     return "a number" if isinstance(value, int | float) else f"a {type(value).__name__}"
 
 
+#: the file paths a zenoh 1.x configuration's ``transport/link/tls`` may name (the *_base64 forms carry the data)
+TLS_FILE_KEYS = (
+    "root_ca_certificate",
+    "listen_certificate",
+    "listen_private_key",
+    "connect_certificate",
+    "connect_private_key",
+)
+
+
+def _check_tls_files(config, where: str) -> None:
+    """Each TLS file the configuration names must be a readable file: zenoh reads them only when a TLS link opens,
+    so a certificate missing from a mount passed ``--check`` and failed the session at start, or at the first
+    dial."""
+    for key in TLS_FILE_KEYS:
+        name = f"transport/link/tls/{key}"
+        try:
+            value = json.loads(config.get_json(name) or "null")
+        except (zenoh.ZError, ValueError):
+            continue  # not a key this zenoh knows: nothing to check
+        if value is None:
+            continue
+        path = os.fspath(value)
+        if not os.path.isfile(path):
+            what = "a folder, not a file" if os.path.isdir(path) else "no such file"
+            raise ZenohConfigError(f"{where}: {name} {path}: {what}")
+        if not os.access(path, os.R_OK):
+            raise ZenohConfigError(f"{where}: {name} {path}: not readable by this process (uid {os.getuid()})")
+
+
 def build_config(settings: ZenohConfig, *, max_payload_bytes: int | None = None, file_option: str = "--zenoh-config"):
     """A ``zenoh.Config`` from ``settings`` (file first, then options on top).  No I/O but the file, whose
     errors name it after ``file_option`` (the daemon's ``zenoh.config_file``, a command's ``--zenoh-config``).
@@ -364,6 +394,7 @@ def build_config(settings: ZenohConfig, *, max_payload_bytes: int | None = None,
             config = zenoh.Config.from_file(path)
         except zenoh.ZError as exc:
             raise ZenohConfigError(f"{file_option} {path}: {_one_line(exc)}") from None
+        _check_tls_files(config, f"{file_option} {path}")
         file_sets_listen = config.get_json("listen/endpoints") != zenoh.Config().get_json("listen/endpoints")
         scouting_in_file = json.loads(config.get_json("scouting/multicast/enabled") or "null")
     else:

@@ -54,3 +54,23 @@ def test_a_file_that_is_no_value_at_all_is_still_zenohs_to_judge(tmp_path, name,
         build_config(ZenohConfig(config_file=str(path)))
     assert str(err.value).startswith(f"--zenoh-config {path}: ") and "top level" not in str(err.value)
     assert zenoh_says in str(err.value)
+
+
+@pytest.mark.parametrize("key", ["root_ca_certificate", "connect_certificate", "connect_private_key"])
+def test_a_tls_file_the_configuration_names_must_be_there(tmp_path, key):
+    """zenoh reads its TLS files only when a TLS link opens: a certificate missing from a mount passed --check and
+    failed the session at start.  Present and readable, the configuration builds."""
+    files = {k: tmp_path / f"{k}.pem" for k in ("root_ca_certificate", "connect_certificate", "connect_private_key")}
+    for path in files.values():
+        path.write_text("-----BEGIN CERTIFICATE-----\n")
+    tls = ", ".join(f'{k}: "{p}"' for k, p in files.items())
+    cfg = tmp_path / "client.json5"
+    cfg.write_text(f'{{ mode: "client", transport: {{ link: {{ tls: {{ {tls}, enable_mtls: true }} }} }} }}\n')
+    build_config(ZenohConfig(config_file=str(cfg)))
+    files[key].unlink()
+    with pytest.raises(ZenohConfigError) as info:
+        build_config(ZenohConfig(config_file=str(cfg)))
+    assert str(info.value) == f"--zenoh-config {cfg}: transport/link/tls/{key} {files[key]}: no such file"
+    files[key].mkdir()
+    with pytest.raises(ZenohConfigError, match="a folder, not a file"):
+        build_config(ZenohConfig(config_file=str(cfg)))
