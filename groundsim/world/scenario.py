@@ -858,11 +858,13 @@ def reference_scenario_paths() -> dict[str, Path]:
 
 
 def resolve_scenario_path(text: str | Path) -> Path:
-    """``--scenario``: an existing file, or a shipped scenario's name (``P1``, ``h2``: case-insensitive).
+    """``--scenario``: an existing file, or a shipped scenario's name (``P1``, ``h2``: case-insensitive).  A
+    folder of the name in the current directory (a run's output called ``P1``, say) is no scenario file and does
+    not hide the shipped one; a file of the name does, being what was named.
 
     Neither is a :class:`ScenarioError` naming the shipped scenarios."""
     p = Path(text)
-    if p.exists():
+    if p.exists() and not p.is_dir():
         return p
     shipped = reference_scenario_paths()
     by_lower = {name.lower(): path for name, path in shipped.items()}
@@ -873,7 +875,7 @@ def resolve_scenario_path(text: str | Path) -> Path:
         str(text),
         "(file)",
         "an existing file or one of the shipped scenarios " + ", ".join(shipped),
-        got_text="no such file",
+        got_text="a folder, not a file" if p.is_dir() else "no such file",
     )
 
 

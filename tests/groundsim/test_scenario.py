@@ -985,3 +985,18 @@ def test_random_text_edits_raise_only_scenario_error(edits):
         load_scenario(path)
     except ScenarioError as e:
         assert str(e).startswith(f"{path}: ") and "\n" not in str(e)
+
+
+def test_a_folder_named_like_a_shipped_scenario_does_not_hide_it(tmp_path, monkeypatch):
+    """A run's output folder called P1 in the current directory had made --scenario P1 fail ('expected a file, got a
+    directory'); a file of that name is still what was named, and a folder matching nothing says it is a folder."""
+    from groundsim.world.scenario import ScenarioError, reference_scenario_paths, resolve_scenario_path
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "P1").mkdir()
+    assert resolve_scenario_path("P1") == reference_scenario_paths()["P1"]
+    (tmp_path / "P2").write_text("name: mine\n")
+    assert resolve_scenario_path("P2") == Path("P2")
+    (tmp_path / "runs").mkdir()
+    with pytest.raises(ScenarioError, match="a folder, not a file"):
+        resolve_scenario_path("runs")
