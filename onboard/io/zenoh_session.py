@@ -340,6 +340,13 @@ TLS_FILE_KEYS = (
 )
 
 
+def _not_a_file(path: str) -> str | None:
+    """Why ``path`` is not a file zenoh can read from, in words, or None when it is a file."""
+    if os.path.isfile(path):
+        return None
+    return "a folder, not a file" if os.path.isdir(path) else "not a file" if os.path.exists(path) else "no such file"
+
+
 def _check_tls_files(config, where: str) -> None:
     """Each TLS file the configuration names must be a readable file: zenoh reads them only when a TLS link opens,
     so a certificate missing from a mount passed ``--check`` and failed the session at start, or at the first
@@ -353,8 +360,8 @@ def _check_tls_files(config, where: str) -> None:
         if value is None:
             continue
         path = os.fspath(value)
-        if not os.path.isfile(path):
-            what = "a folder, not a file" if os.path.isdir(path) else "no such file"
+        what = _not_a_file(path)
+        if what is not None:
             raise ZenohConfigError(f"{where}: {name} {path}: {what}")
         if not os.access(path, os.R_OK):
             raise ZenohConfigError(f"{where}: {name} {path}: not readable by this process (uid {os.getuid()})")
@@ -375,14 +382,8 @@ def build_config(settings: ZenohConfig, *, max_payload_bytes: int | None = None,
     file_sets_listen = False
     if settings.config_file is not None:
         path = os.fspath(settings.config_file)
-        if not os.path.isfile(path):
-            what = (
-                "a folder, not a file"
-                if os.path.isdir(path)
-                else "not a file"
-                if os.path.exists(path)
-                else "no such file"
-            )
+        what = _not_a_file(path)
+        if what is not None:
             raise ZenohConfigError(f"{file_option} {path}: {what}")
         kind = _top_level_kind(path)
         if kind is not None:
