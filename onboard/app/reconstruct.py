@@ -119,6 +119,7 @@ from onboard.app.cli_args import OneLineParser, nonnegative_float, sigterm_as_in
 from onboard.app.output_files import create_beside, output_target, same_file_clash
 from onboard.core.errors import InputError, IrtrackError
 from onboard.core.frames import QUAT_NORM_TOL
+from onboard.estimation.crb import range_sigma_ratios
 from onboard.estimation.map_estimator import EstimationError, MapConfig, MapEstimator, MapResult, NoiseModel
 from onboard.estimation.observations import Observations
 from onboard.estimation.paper import PaperConfig, PaperEstimator, PaperResult
@@ -488,11 +489,8 @@ def _range_sigma_summary(obs: Observations, p_ned_m: np.ndarray, cov_p_ned_m2: n
     """The MAP solution's range sigma over range per row, from the covariance whose diagonal OUT.csv's sigmas are
     (after an unobservable solution's range floor): its median and its largest.  ``range_sigma_ratio`` is the
     verdict's input instead, a window's median before that floor, and would understate what the file holds."""
-    los = np.asarray(p_ned_m, dtype=float) - obs.p_cam_ned_m
-    rng = np.linalg.norm(los, axis=1)
     with np.errstate(all="ignore"):
-        u = los / rng[:, None]
-        ratio = np.sqrt(np.maximum(np.einsum("fi,fij,fj->f", u, cov_p_ned_m2, u), 0.0)) / rng
+        ratio = range_sigma_ratios(cov_p_ned_m2, np.asarray(p_ned_m, dtype=float), obs.p_cam_ned_m)
     finite = bool(np.all(np.isfinite(ratio)))
     return {
         "range_sigma_median_ratio": float(np.median(ratio)) if finite else None,

@@ -86,8 +86,9 @@ def _rms_m(P: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.einsum("fii->f", P))))
 
 
-def _range_sigma_ratios(P: np.ndarray, p_true_ned_m: np.ndarray, p_cam_ned_m: np.ndarray) -> np.ndarray:
-    """(F,): each point's range sigma under the bound ``P`` (F, 3, 3) over its true range."""
+def range_sigma_ratios(P: np.ndarray, p_true_ned_m: np.ndarray, p_cam_ned_m: np.ndarray) -> np.ndarray:
+    """(F,): each point's range sigma under ``P`` (F, 3, 3) over its range, along the line of sight from
+    ``p_cam_ned_m`` to ``p_true_ned_m`` (a bound at the truth, or an estimate's own covariance at the estimate)."""
     los = p_true_ned_m - p_cam_ned_m
     r = np.linalg.norm(los, axis=1)
     u = los / r[:, None]
@@ -95,7 +96,7 @@ def _range_sigma_ratios(P: np.ndarray, p_true_ned_m: np.ndarray, p_cam_ned_m: np
 
 
 def _range_sigma_ratio(P: np.ndarray, p_true_ned_m: np.ndarray, p_cam_ned_m: np.ndarray) -> float:
-    return float(np.median(_range_sigma_ratios(P, p_true_ned_m, p_cam_ned_m)))
+    return float(np.median(range_sigma_ratios(P, p_true_ned_m, p_cam_ned_m)))
 
 
 @dataclass(frozen=True)
@@ -252,6 +253,6 @@ def online_verdict_bound_ratios(
             continue
         res = solution.results[owner[newest]]
         bound = bayesian_crb(estimator, obs.select(rows), p_true[rows], res.prior, res.turn_rate_radps)
-        ratio = _range_sigma_ratios(bound.point_covariances(), bound.p_true_ned_m, bound.p_cam_ned_m)
+        ratio = range_sigma_ratios(bound.point_covariances(), bound.p_true_ned_m, bound.p_cam_ned_m)
         out[j] = max(float(np.median(ratio)), float(ratio[-1]) / sliding.edge_sigma_factor)
     return out
