@@ -271,9 +271,9 @@ def _truth(data: bytes) -> dict:
     obj = _json_object(data, ("seq", "time_boot_us"))
     for name in TRUTH_NUMBERS + TRUTH_NUMBERS_OR_NULL:
         value = obj.get(name)
-        if value is None and (name in TRUTH_NUMBERS_OR_NULL or name not in obj):
-            if name in TRUTH_NUMBERS:
-                raise ValueError(f"no field {name!r}")
+        if name in TRUTH_NUMBERS and name not in obj:
+            raise ValueError(f"no field {name!r}")
+        if value is None and name in TRUTH_NUMBERS_OR_NULL:
             continue
         if not (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)):
             raise ValueError(f"field {name!r} is {_shown(value)}, not a finite number")
