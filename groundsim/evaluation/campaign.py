@@ -821,9 +821,9 @@ def run_campaign(
     Executors: ``workers`` processes of a local pool (1 = in this process), or, with ``scheduler``
     (``tcp://HOST:PORT``), the workers of a Dask distributed cluster (``workers`` is then the threads the
     cluster offers).  Pool and cluster share one path: every job is submitted as a future, results are
-    taken as they complete and appended here; workers never touch ``out``.  ``run_timeout_s``: each case's
+    taken as they complete and appended here; workers never touch ``out``.  ``run_timeout_s``: each job's
     wall-clock deadline on a local pool, its runs failed past it (None: per run 20 x its simulated seconds + 120 s,
-    summed over the case's runs); not enforced in this process or on a cluster."""
+    summed over the job's runs); not enforced in this process or on a cluster."""
     run_timeout_s = check_run_timeout(run_timeout_s)
     out.mkdir(parents=True, exist_ok=True)
     log_path = out / LOG_NAME

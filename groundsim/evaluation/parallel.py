@@ -362,6 +362,12 @@ def pool_results(pool, job, jobs: list, on_lost=None, drain=None, deadline_s=Non
     def limit(i: int) -> float | None:
         return deadline_s(jobs[i]) if callable(deadline_s) else deadline_s
 
+    def lost(i: int, reason: str):
+        left.discard(i)
+        if on_lost is None:
+            raise WorkerLost(reason)
+        return on_lost(jobs[i], reason)
+
     while left:
         if drain is not None:
             drain(0.2)
@@ -382,11 +388,7 @@ def pool_results(pool, job, jobs: list, on_lost=None, drain=None, deadline_s=Non
                 read_starts()
                 if i not in finished and not pending[i].ready():
                     _kill_worker(pid)
-                    left.discard(i)
-                    reason = f"ran past the run deadline of {t_limit:g} s; its worker (pid {pid}) was stopped"
-                    if on_lost is None:
-                        raise WorkerLost(reason)
-                    yield i, on_lost(jobs[i], reason)
+                    yield i, lost(i, f"ran past the run deadline of {t_limit:g} s; its worker (pid {pid}) was stopped")
                     continue
             why = None if pid is None else _worker_gone(pid, procs)
             if why is None:
@@ -394,11 +396,7 @@ def pool_results(pool, job, jobs: list, on_lost=None, drain=None, deadline_s=Non
             t_gone = gone_since.setdefault(i, time.monotonic())
             if time.monotonic() - t_gone < LOST_GRACE_S:
                 continue
-            left.discard(i)
-            reason = f"its worker process (pid {pid}) ended{why} before the job finished"
-            if on_lost is None:
-                raise WorkerLost(reason)
-            yield i, on_lost(jobs[i], reason)
+            yield i, lost(i, f"its worker process (pid {pid}) ended{why} before the job finished")
 
 
 def stop_pool(pool, timeout_s: float = 10.0) -> None:
