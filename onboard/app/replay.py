@@ -80,15 +80,15 @@ from onboard.app.cli_args import (  # noqa: E402
     sigterm_as_interrupt,
 )
 from onboard.app.output_files import same_file_clash  # noqa: E402
-from onboard.core.errors import InputError, IrtrackError  # noqa: E402
-from onboard.core.track import TRACK_SCHEMA  # noqa: E402
-from onboard.io.foxglove_messages import (  # noqa: E402
-    FRAME_INPUT_SCHEMA,
-    IMAGING_POSE_SCHEMA,
-    OBJECTS_SCHEMA,
-    TRUTH_SCHEMA,
-    irframe_from_rawimage,
+from onboard.app.recorded_messages import (  # noqa: E402
+    damage_text,
+    json_object,
+    track_row,
+    truth_row,
+    unread_version,
 )
+from onboard.core.errors import InputError, IrtrackError  # noqa: E402
+from onboard.io.foxglove_messages import OBJECTS_SCHEMA, irframe_from_rawimage  # noqa: E402
 from onboard.io.mcap_read import FrameRef, read_recording  # noqa: E402
 from onboard.io.record import FRAME_INPUT_TOPIC, IMAGING_POSE_TOPIC, TRUTH_TOPIC, pose_from_json  # noqa: E402
 
@@ -173,7 +173,7 @@ def load_recording(path: str) -> Recording:
         counts[m.topic] = index + 1
         first = m.log_time_ns if first is None else first
         last = m.log_time_ns
-        unread = _unread_version(m.topic, m.schema)
+        unread = unread_version(m.topic, m.schema)
         if unread:
             raise InputError(f"{path}: message {index} on {m.topic} (log time {m.log_time_ns} ns) is of {unread}")
         try:
@@ -184,131 +184,23 @@ def load_recording(path: str) -> Recording:
                 ref = FrameRef(path, m.data_offset, len(m.data), None if m.data_offset is not None else m.data)
                 frames.setdefault((m.sequence, t_us), []).append((ref, m.publish_time_ns))
             elif m.topic == FRAME_INPUT_TOPIC:
-                inputs.append(_json_object(m.data, ("seq", "time_boot_us", "received_ns"), pose=True))
+                inputs.append(json_object(m.data, ("seq", "time_boot_us", "received_ns"), pose=True))
             elif m.schema.startswith("irtrack.track/"):
-                tracks.append(_track(m.data))
+                tracks.append(track_row(m.data))
             elif m.topic == TRUTH_TOPIC:
-                truth.append(_truth(m.data))
+                truth.append(truth_row(m.data))
             elif m.schema == OBJECTS_SCHEMA:
-                objects.append(_json_object(m.data, ("time_boot_us", "frame_index")))
+                objects.append(json_object(m.data, ("time_boot_us", "frame_index")))
             elif m.topic == IMAGING_POSE_TOPIC:
-                obj = _json_object(m.data, ("seq", "time_boot_us"), pose=True)
+                obj = json_object(m.data, ("seq", "time_boot_us"), pose=True)
                 imaging_poses.setdefault((obj["seq"], obj["time_boot_us"]), []).append(obj)
         except (ValueError, DecodeError, KeyError, TypeError, RecursionError, InputError) as exc:
             raise InputError(
-                f"{path}: message {index} on {m.topic} (log time {m.log_time_ns} ns) is damaged: {_damage(exc)}"
+                f"{path}: message {index} on {m.topic} (log time {m.log_time_ns} ns) is damaged: {damage_text(exc)}"
             ) from None
     if truncated is not None and not counts:
         raise InputError(f"{path}: file cut short before its first message ({truncated})")
     return Recording(path, meta, frames, inputs, tracks, truth, first, last, truncated, counts, objects, imaging_poses)
-
-
-#: the versions of the messages replay reads, by the topic or the schema family it finds them by: a later version's
-#: fields may mean something else, so it is refused rather than read as this one (a track's /1 differs from /2 only
-#: in when a position is published, which replay compares as recorded)
-_READ_VERSIONS = {
-    FRAME_INPUT_TOPIC: (FRAME_INPUT_SCHEMA,),
-    TRUTH_TOPIC: (TRUTH_SCHEMA,),
-    IMAGING_POSE_TOPIC: (IMAGING_POSE_SCHEMA,),
-    "irtrack.track/": ("irtrack.track/1", TRACK_SCHEMA),
-    "irtrack.objects/": (OBJECTS_SCHEMA,),
-}
-
-
-def _unread_version(topic: str, schema: str) -> str:
-    """What is wrong when a message replay reads (by ``topic``, or by ``schema``'s family) is of a version it does
-    not read; '' when nothing."""
-    family = schema.split("/", 1)[0] + "/" if "/" in schema else None
-    known = _READ_VERSIONS.get(topic) or (_READ_VERSIONS.get(family) if family else None)
-    if known is None or schema in known:
-        return ""
-    return f"schema {schema!r}, a version this replay does not read (it reads {', '.join(known)}): a newer irtrack's?"
-
-
-def _is_int(value: Any) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool)
-
-
-def _is_number(value: Any) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool)
-
-
-def _shown(value: Any) -> str:
-    """``value`` as JSON, cut to a length that fits in an error line."""
-    text = json.dumps(value)
-    return text if len(text) <= 40 else text[:37] + "..."
-
-
-def _json_object(data: bytes, ints: tuple[str, ...], pose: bool = False) -> dict:
-    """``data`` as a JSON object whose fields ``ints`` are integers (replay matches frames on them) and, with
-    ``pose``, whose ``pose`` field is null or a pose :func:`pose_from_json` reads; ValueError or InputError
-    saying what is wrong otherwise."""
-    obj = json.loads(data)
-    if not isinstance(obj, dict):
-        raise ValueError(f"{_shown(obj)} is not a JSON object")
-    for name in ints + (("pose",) if pose else ()):
-        if name not in obj:
-            raise ValueError(f"no field {name!r}")
-    for name in ints:
-        if not _is_int(obj[name]):
-            raise ValueError(f"field {name!r} is {_shown(obj[name])}, not an integer")
-    if pose:
-        pose_from_json(obj["pose"], "field 'pose'")
-    return obj
-
-
-#: the truth fields ``groundsim report`` reads: finite numbers in every row the simulator writes (TruthRow's), the
-#: target's pixel a number or null (behind the camera), the injected navigation errors numbers where present
-TRUTH_NUMBERS = tuple(
-    f"{who}_{what}" for who in ("target", "observer") for what in ("lat_deg", "lon_deg", "alt_m")
-) + tuple(f"q_ned_from_cam_{c}" for c in "wxyz")
-TRUTH_NUMBERS_OR_NULL = ("target_u_px", "target_v_px") + tuple(f"nav_att_err_{c}_rad" for c in "ned")
-
-
-def _truth(data: bytes) -> dict:
-    """A simulator's truth row (``irtrack.truth/1``), checked for the fields the report reads (a NaN latitude had
-    made the error plot drop its frames unsaid, a missing one a traceback)."""
-    obj = _json_object(data, ("seq", "time_boot_us"))
-    for name in TRUTH_NUMBERS + TRUTH_NUMBERS_OR_NULL:
-        value = obj.get(name)
-        if name in TRUTH_NUMBERS and name not in obj:
-            raise ValueError(f"no field {name!r}")
-        if value is None and name in TRUTH_NUMBERS_OR_NULL:
-            continue
-        if not (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)):
-            raise ValueError(f"field {name!r} is {_shown(value)}, not a finite number")
-    return obj
-
-
-def _track(data: bytes) -> dict:
-    """A recorded track's JSON, checked for the fields :func:`compare_tracks` and :func:`compare_within_sigma` read."""
-    obj = _json_object(data, ("seq", "time_boot_us"))
-    u, v = obj.get("u_px"), obj.get("v_px")
-    if not ((u is None and v is None) or (_is_number(u) and _is_number(v))):
-        raise ValueError(f"fields 'u_px', 'v_px' are {_shown(u)}, {_shown(v)}: not two numbers or two nulls")
-    for name, shape in (("ned_m", (3,)), ("cov_ned_m2", (3, 3))):
-        value = obj.get(name)
-        if value is not None and not _numbers_of_shape(value, shape):
-            raise ValueError(f"field {name!r} is {_shown(value)}, not null or {' x '.join(map(str, shape))} numbers")
-    return obj
-
-
-def _numbers_of_shape(value: Any, shape: tuple[int, ...]) -> bool:
-    """Whether ``value`` is nested lists of numbers of ``shape``."""
-    if not shape:
-        return _is_number(value)
-    return isinstance(value, list) and len(value) == shape[0] and all(_numbers_of_shape(v, shape[1:]) for v in value)
-
-
-def _damage(exc: BaseException) -> str:
-    """What a decoding error says is wrong with a message, in words."""
-    if isinstance(exc, (json.JSONDecodeError, UnicodeDecodeError)):
-        return f"not JSON ({exc})"
-    if isinstance(exc, KeyError):
-        return f"no field {exc.args[0]!r}"
-    if isinstance(exc, RecursionError):
-        return "JSON nested too deeply"
-    return str(exc)
 
 
 def no_frames_text(rec: Recording) -> str:

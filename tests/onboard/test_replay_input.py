@@ -332,20 +332,20 @@ def _truth_message(**change) -> bytes:
 def test_a_truth_row_the_report_cannot_read_is_damaged_naming_the_field(change, said):
     """A NaN target latitude had made the report's error plot drop its frames unsaid; a missing or mistyped field
     ended it in a traceback."""
-    from onboard.app.replay import _truth
+    from onboard.app.recorded_messages import truth_row
 
     with pytest.raises(ValueError, match=re.escape(said)):
-        _truth(_truth_message(**change))
+        truth_row(_truth_message(**change))
 
 
 def test_a_truth_row_without_a_field_the_report_reads_is_damaged_and_a_null_pixel_is_not():
-    from onboard.app.replay import _truth
+    from onboard.app.recorded_messages import truth_row
 
     row = json.loads(_truth_message())
     del row["target_lon_deg"]
     with pytest.raises(ValueError, match="no field 'target_lon_deg'"):
-        _truth(json.dumps(row).encode())
-    assert _truth(_truth_message(target_u_px=None, target_v_px=None))["target_u_px"] is None  # behind the camera
+        truth_row(json.dumps(row).encode())
+    assert truth_row(_truth_message(target_u_px=None, target_v_px=None))["target_u_px"] is None  # behind the camera
 
 
 def test_a_recording_from_before_the_chain_field_replays_with_the_single_chain_it_ran():
