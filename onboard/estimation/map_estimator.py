@@ -16,7 +16,9 @@ its range hypotheses find the basins they always did), then at the grid's other 
 evidence rises towards them; a mode far below the best so far starts no stiffer model, and a family whose
 evidence falls hopelessly as its prior stiffens stops (``coarse_q_grid_m2ps3``, ``hopeless_nats``: the log
 evidence is smooth and single-peaked in log q, and the models left out carried below 1e-3 of the posterior on the
-reference windows).  The point estimate is the model that pins range best among those within
+reference windows).  The CT family's first intensity is also started turning (``turn_rate_starts_radps``):
+its posterior is multimodal in the turn rate, and a turning target's mode is not reached from a straight
+start.  The point estimate is the model that pins range best among those within
 ``model_margin_nats`` of the highest evidence -- never the lowest cost, which favours the collapsed
 near-camera solution, and never blindly the highest evidence, which a vague model can win by
 leaving range free.  Its covariance is model-averaged over the evidence weights w_k of the models
@@ -31,7 +33,9 @@ exceeds ``max_ambiguity`` all models are averaged.
 
 Verdict (``MapResult.observable``): the reported range sigma over range, median over the window
 (``range_sigma_ratio``), below ``observability_max_sigma_range_ratio`` (5.5 %); the ambiguity at most
-``max_ambiguity``; the residuals pass a block-whiteness adequacy test; no negative variance.  A
+``max_ambiguity``; the residuals pass a block-whiteness adequacy test; no negative variance; a turning (CT)
+solution's turn rate at least ``turn_established_z`` sigma from zero, unless the best straight model is
+observable itself (a turn the window cannot tell from none pins range by the model's rigidity alone).  A
 straight constant-velocity or hovering observer (the relative trajectory scales freely) is flagged,
 not answered confidently.  An unobservable solution is still returned, with its range sigma raised to
 at least ``unobservable_range_sigma_floor`` (50 %) of the range and ``unobservable_range_sigma_min_m``
@@ -141,6 +145,19 @@ class MapConfig:
     cold_whole_grid: bool = True
     vertical_ratio: NonNegativeFloat = 0.25
     turn_rate_sigma_radps: NonNegativeFloat = 0.3
+    # the CT family's first intensity also starts from its fresh range hypothesis turning at +- each of these
+    # rates: the CT posterior is multimodal in the turn rate, and a chain started at zero turn stays in the
+    # straight basin, where a turning target's bearings are explained at a wrong range (P3 with the observer's
+    # manoeuvre x4: CV at 114 m called observable against a true 137 m, while the CT mode at the true range
+    # and turn had 5 nats more evidence and was never reached).  Turning the best solution so far as well
+    # found nothing more and cost twice the work (docs/design.md, "Off the reference geometries"); empty: none
+    turn_rate_starts_radps: Annotated[tuple[float, ...], Numbers(lo=0.0, lo_open=True)] = (0.125,)
+    # a turning solution pins range by its rigidity (constant speed and turn) even where the bearings leave it
+    # free: it is observable only when its turn rate is at least this many sigmas from zero, or when the best
+    # straight (CV) model on the window is observable itself.  H3's straight observer, seeds whose noise a
+    # +-0.03-0.05 rad/s turn fits, had turns at 1-4 sigma (observable 8/150 without this check); P3's circling
+    # target at 19 sigma (4x manoeuvre, 7.4 s) to 94 sigma (reference, 10 s)
+    turn_established_z: PositiveFloat = 5.0
     init_ranges_m: Annotated[tuple[float, ...], Numbers(lo=0.0, lo_open=True, min_length=1)] = (
         40.0,
         100.0,
@@ -526,9 +543,11 @@ class MapEstimator:
                 elif carry and (fam != families[0] or trust_warm):  # the other family's (or a trusted warm)
                     # best, plus one fresh range hypothesis
                     starts = [self._adapt(th, prob) for th in carry] + [self._fresh(prob)]
+                    starts += self._turned(prob, starts[-1])
                 else:  # the first family: every range hypothesis, plus the caller's warm solution if any (a
                     # warm start alone kept an online window in a wrong basin for seconds)
                     starts = self.initial_guesses(prob) + [self._adapt(th, prob) for th in carry]
+                    starts += self._turned(prob, self._fresh(prob))
                 try:
                     top, modes = yield from self._prior_steps(obs, pr, starts, grid, 2, weight_range_m, prob)
                 except EstimationError:  # every start collapsed or left the field of view: no mode here
@@ -633,7 +652,17 @@ class MapEstimator:
             mix = (w_best / w_near, extra_near / w_near)
         else:
             mix = (w_best, extra_near + extra_far)
-        res = self.result(best, mix=mix, ambiguity=ambiguity, weight_range_m=weight_range_m)
+        straight_ratio = None
+        if best.problem.i_omega is not None:  # a turn pins range only where it is established (result())
+            straight = max(tops.get("cv", []), key=lambda m: m.log_evidence, default=None)
+            if straight is None:
+                straight_ratio = math.inf
+            else:
+                p_s, P_s, _ = moments(straight)
+                straight_ratio = self._median_ratio(p_s, P_s, cam)
+        res = self.result(
+            best, mix=mix, ambiguity=ambiguity, weight_range_m=weight_range_m, straight_ratio=straight_ratio
+        )
         grid_ev = {f: [(t.problem.prior.q_horizontal_m2ps3, t.log_evidence) for t in ts] for f, ts in tops.items()}
         return dataclasses.replace(
             res, model=chosen, family_log_evidence=fam_ev, grid_log_evidence=grid_ev, best_model_weight=w_best
@@ -670,6 +699,15 @@ class MapEstimator:
                 extra_far += term
         return w_best, w_near + w_best, extra_near, extra_far
 
+    def _median_ratio(self, p: np.ndarray, P: np.ndarray, cam: np.ndarray) -> float:
+        """The reported range sigma over range, median over the window, of positions ``p`` with covariances ``P``
+        seen from ``cam`` (the verdict's ratio of a single model, inflated as reported)."""
+        los = p - cam
+        rng = np.linalg.norm(los, axis=1)
+        u = los / rng[:, None]
+        sig_r = np.sqrt(np.maximum(np.einsum("fi,fij,fj->f", u, P, u), 0.0))
+        return float(np.median(sig_r / rng)) * self.config.sigma_inflation
+
     def _moments(self, mode: Mode):
         """Positions (F, 3), point covariances (F, 3, 3) and max sigma_range / range of a mode."""
         prob, theta, fac = mode.problem, mode.theta, mode.factor
@@ -680,6 +718,18 @@ class MapEstimator:
         u = los / rng[:, None]
         ratio = float(np.max(np.sqrt(np.maximum(np.einsum("fi,fij,fj->f", u, P, u), 0.0)) / rng))
         return p, P, ratio
+
+    def _turned(self, prob: WindowProblem, theta: np.ndarray) -> list[np.ndarray]:
+        """``theta`` turning at +- each of ``turn_rate_starts_radps`` (none unless ``prob``'s prior has a turn rate)."""
+        if prob.i_omega is None:
+            return []
+        out = []
+        for w in self.config.turn_rate_starts_radps:
+            for sign in (1.0, -1.0):
+                turned = theta.copy()
+                turned[prob.i_omega] = sign * w
+                out.append(turned)
+        return out
 
     def _fresh(self, prob: WindowProblem) -> np.ndarray:
         """The middle range hypothesis of :meth:`initial_guesses` (the cheap fresh start of a warm chain)."""
@@ -701,12 +751,20 @@ class MapEstimator:
         return out
 
     def result(
-        self, mode: Mode, mix=None, ambiguity: float = 0.0, weight_range_m: np.ndarray | None = None
+        self,
+        mode: Mode,
+        mix=None,
+        ambiguity: float = 0.0,
+        weight_range_m: np.ndarray | None = None,
+        straight_ratio: float | None = None,
     ) -> MapResult:
         """The named result of one solution (``mode``); ``mix = (weight, extra)`` turns its point covariance into
         ``weight * P + extra`` (the model-averaged covariance of :meth:`solve`); ``ambiguity`` is the
         posterior mass of far solutions (see :meth:`solve`); ``weight_range_m`` the ranges the pixel
-        weights were taken at (:meth:`solve_prior`; default the solution's own)."""
+        weights were taken at (:meth:`solve_prior`; default the solution's own).  ``straight_ratio``: the
+        range sigma ratio of the best straight (CV) model on the same window; a turning solution whose turn
+        rate is within ``turn_established_z`` sigma of zero is observable only if that one is too (None: no
+        such check)."""
         prob, theta, cost, fac = mode.problem, mode.theta, mode.cost, mode.factor
         # the problem object served several starts: its weights must be this solution's
         prob.set_measurement_weights(weight_range_m if weight_range_m is not None else self._ranges(prob, theta))
@@ -728,17 +786,28 @@ class MapEstimator:
         r_std = r[: 2 * prob.F].reshape(prob.F, 2)
         adequacy_p = self._adequacy_p(r_std)
         cfg = self.config
+        om = float(theta[prob.i_omega]) if prob.i_omega is not None else 0.0
+        unestablished_turn = False
+        if straight_ratio is not None and prob.i_omega is not None:
+            # as the turn rate goes to zero a turning path's range is as free as a straight one's, which the
+            # Laplace covariance (linear in the turn rate) does not show: a turn the window cannot tell from
+            # none pins range by the model's rigidity alone
+            sd_om = math.sqrt(max(float(Sigma[prob.i_omega, prob.i_omega]), 0.0))
+            unestablished_turn = bool(
+                abs(om) < cfg.turn_established_z * sd_om
+                and not straight_ratio < cfg.observability_max_sigma_range_ratio
+            )
         observable = bool(
             ratio < cfg.observability_max_sigma_range_ratio
             and not neg
             and math.isfinite(cost)
             and adequacy_p >= cfg.adequacy_p_min
             and ambiguity <= cfg.max_ambiguity
+            and not unestablished_turn
         )
         P_model = P
         if not observable and cfg.unobservable_range_sigma_floor > 0:
             P = P + self.range_floor(u, sig_r, rng)[0]
-        om = float(theta[prob.i_omega]) if prob.i_omega is not None else 0.0
         phi = theta[prob.i_phi : prob.i_phi + 3].copy() if prob.i_phi is not None else np.zeros(3)
         return MapResult(
             t_s=prob.obs.t_s.copy(),
