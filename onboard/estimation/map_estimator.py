@@ -33,7 +33,8 @@ exceeds ``max_ambiguity`` all models are averaged.
 
 Verdict (``MapResult.observable``): the reported range sigma over range, median over the window
 (``range_sigma_ratio``), below ``observability_max_sigma_range_ratio`` (5.5 %); the ambiguity at most
-``max_ambiguity``; the residuals pass a block-whiteness adequacy test; no negative variance; a turning (CT)
+``max_ambiguity``, and at most ``max_rival_mass`` on far solutions that pin range themselves (a rival answer);
+the residuals pass a block-whiteness adequacy test; no negative variance; a turning (CT)
 solution's turn rate at least ``turn_established_z`` sigma from zero, unless the best straight model is
 observable itself (a turn the window cannot tell from none pins range by the model's rigidity alone).  A
 straight constant-velocity or hovering observer (the relative trajectory scales freely) is flagged,
@@ -190,6 +191,11 @@ class MapConfig:
     # uncertainty but of its ambiguity; the verdict wants their posterior mass at most max_ambiguity
     near_solution_ratio: PositiveFloat = 0.3
     max_ambiguity: Annotated[float, Number(0.0, 1.0)] = 0.5
+    # ... and at most this much of it may lie on far solutions that pin range themselves: a rival answer, not a
+    # vague one (P1's accelerating mirror target is vague: its range sigma 10-40 %).  P1 off the reference
+    # (half range, aspect 180 deg, observer x3, RTK, seed 1): a turning mode at 1.5x the range held 96 % of the
+    # posterior and was called observable, the straight truth a rival with 4 % pinned to 2 %
+    max_rival_mass: Annotated[float, Number(0.0, 1.0)] = 0.01
     # the reported solution's neighbourhood must hold at least this posterior mass; otherwise the next
     # close model that does is reported (the online window met a stiff CT model with ~0 weight, 37 % off,
     # while the evidence sat on solutions at the true range)
@@ -646,7 +652,7 @@ class MapEstimator:
                 if sp[1] >= cfg.min_solution_mass or m is top_fm[1]:
                     chosen, best, split = f, m, sp
                     break
-        w_best, w_near, extra_near, extra_far = split
+        w_best, w_near, extra_near, extra_far, w_rival = split
         ambiguity = float(max(0.0, 1.0 - w_near))
         if ambiguity <= cfg.max_ambiguity:
             mix = (w_best / w_near, extra_near / w_near)
@@ -661,7 +667,12 @@ class MapEstimator:
                 p_s, P_s, _ = moments(straight)
                 straight_ratio = self._median_ratio(p_s, P_s, cam)
         res = self.result(
-            best, mix=mix, ambiguity=ambiguity, weight_range_m=weight_range_m, straight_ratio=straight_ratio
+            best,
+            mix=mix,
+            ambiguity=ambiguity,
+            weight_range_m=weight_range_m,
+            straight_ratio=straight_ratio,
+            rival_mass=w_rival,
         )
         grid_ev = {f: [(t.problem.prior.q_horizontal_m2ps3, t.log_evidence) for t in ts] for f, ts in tops.items()}
         return dataclasses.replace(
@@ -681,7 +692,7 @@ class MapEstimator:
         F = p_best.shape[0]
         extra_near = np.zeros((F, 3, 3))
         extra_far = np.zeros((F, 3, 3))
-        w_best = w_near = 0.0
+        w_best = w_near = w_rival = 0.0
         for m, wk in zip(cands, w):
             if m is best:
                 w_best = float(wk)
@@ -697,7 +708,9 @@ class MapEstimator:
                 extra_near += term
             else:
                 extra_far += term
-        return w_best, w_near + w_best, extra_near, extra_far
+                if self._median_ratio(p_m, P_m, cam) < cfg.observability_max_sigma_range_ratio:
+                    w_rival += float(wk)
+        return w_best, w_near + w_best, extra_near, extra_far, w_rival
 
     def _median_ratio(self, p: np.ndarray, P: np.ndarray, cam: np.ndarray) -> float:
         """The reported range sigma over range, median over the window, of positions ``p`` with covariances ``P``
@@ -757,6 +770,7 @@ class MapEstimator:
         ambiguity: float = 0.0,
         weight_range_m: np.ndarray | None = None,
         straight_ratio: float | None = None,
+        rival_mass: float = 0.0,
     ) -> MapResult:
         """The named result of one solution (``mode``); ``mix = (weight, extra)`` turns its point covariance into
         ``weight * P + extra`` (the model-averaged covariance of :meth:`solve`); ``ambiguity`` is the
@@ -804,6 +818,7 @@ class MapEstimator:
             and adequacy_p >= cfg.adequacy_p_min
             and ambiguity <= cfg.max_ambiguity
             and not unestablished_turn
+            and rival_mass <= cfg.max_rival_mass
         )
         P_model = P
         if not observable and cfg.unobservable_range_sigma_floor > 0:

@@ -125,6 +125,34 @@ def test_a_turn_the_window_cannot_tell_from_none_does_not_make_a_straight_observ
     assert res.observable is not check
 
 
+@pytest.mark.parametrize("rule", [True, False])
+def test_a_far_solution_that_pins_range_itself_is_a_rival_not_a_vague_ambiguity(rule):
+    """P1 at half the range, its target turned 180 deg and the observer manoeuvring at 3x, RTK, seed 1: a
+    turning mode at 1.5x the range holds ~96 % of the posterior while the straight truth, a few per cent, pins
+    range itself.  Two confident answers that disagree: never observable (``max_rival_mass``); without the
+    rule (the contrast) every observable estimate of the window is beyond 3 sigma."""
+    from groundsim.evaluation.campaign_spec import Geometry, derive_scenario
+
+    sc = derive_scenario(load_scenario(reference_scenario_paths()["P1"]), Geometry(0.5, 180.0, 3.0))
+    nc = load_noise_cases()["RTK"]
+    t = np.arange(300) / 30.0
+    truth, obs = synthesize_scenario(sc, nc, 1, t_s=t)
+    cfg = MapConfig() if rule else MapConfig(max_rival_mass=1.0)
+    sw = SlidingWindowEstimator(noise=estimator_noise_model(nc), map_config=cfg)
+    observable = beyond = 0
+    for i in range(t.size):
+        est = sw.add(t[i], obs.uv_px[i], sc.camera.intrinsics, obs.p_cam_ned_m[i], obs.q_ned_from_cam[i])
+        if est is not None and est.observable:
+            observable += 1
+            beyond += bool(
+                np.linalg.norm(est.p_ned_m - truth.p_target_ned_m[i]) > 3 * math.sqrt(np.trace(est.cov_p_ned_m2))
+            )
+    if rule:
+        assert beyond == 0
+    else:
+        assert observable >= 20 and beyond == observable
+
+
 def test_ambiguity_is_zero_when_all_models_agree():
     res, err, _ = _run("P3", "px0.3", 0)
     assert res.ambiguity < 0.01
