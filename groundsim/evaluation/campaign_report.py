@@ -228,6 +228,54 @@ def manoeuvre_rows(rows: list[dict]) -> list[dict]:
     return out
 
 
+#: how confident_wrong_rows groups the runs: a label and the row's key (None: every run)
+_CONFIDENT_WRONG_GROUPS = (
+    ("all runs", None),
+    ("scenario", "scenario"),
+    ("manoeuvre_scale", "manoeuvre_scale"),
+    ("range_scale", "range_scale"),
+    ("aspect_deg", "aspect_deg"),
+)
+
+
+def confident_wrong_rows(rows: list[dict]) -> list[dict]:
+    """Per algorithm and group (every run, then per scenario and per geometry axis): the frames called
+    observable, how many of them lie beyond 3 sqrt(trace cov) (each run's ``beyond_3sigma_observable`` times its
+    ``observable_frames``, summed: the confident and wrong positions), their share, and the runs with more than
+    1 % of their observable frames beyond."""
+    ok = [r for r in rows if r.get("status") == "ok"]
+    out = []
+    for a in dict.fromkeys(r["algorithm"] for r in ok):
+        rs_a = [r for r in ok if r["algorithm"] == a]
+        for label, key in _CONFIDENT_WRONG_GROUPS:
+            values = [None] if key is None else list(dict.fromkeys(r[key] for r in rs_a))
+            if key is not None and len(values) < 2:
+                continue  # one value: the same figures as "all runs"
+            for v in values:
+                rs = rs_a if key is None else [r for r in rs_a if r[key] == v]
+                frames = wrong = over = 0
+                for r in rs:
+                    n = int(r.get("observable_frames") or 0)
+                    b = r.get("beyond_3sigma_observable")
+                    if not n or b is None or not math.isfinite(b):
+                        continue
+                    frames += n
+                    wrong += round(n * b)
+                    over += b > HONEST_BEYOND_3SIGMA
+                out.append(
+                    {
+                        "algorithm": a,
+                        "group": label if key is None else f"{label} {v:g}" if isinstance(v, float) else f"{label} {v}",
+                        "runs": len(rs),
+                        "observable_frames": frames,
+                        "beyond_frames": wrong,
+                        "beyond_pct": 100.0 * wrong / frames if frames else math.nan,
+                        "runs_over": over,
+                    }
+                )
+    return out
+
+
 def works_from(mrows: list[dict], good_pct: float = GOOD_ERR_PCT) -> list[dict]:
     """Per (algorithm, scenario, noise): the smallest measured manoeuvre (RMS acceleration normal to the
     line of sight) from which every larger swept level has a median err/range <= ``good_pct``."""
@@ -346,6 +394,22 @@ def write_report(out: Path, spec: CampaignSpec, rows: list[dict], run_info: dict
                 f"{_pct(100 * r['obs_share'], 0)} | {_pct(r['crb_pct'])} |"
             )
         L.append("")
+    L.append("## Confident and wrong\n")
+    L.append(
+        "Observable frames (positions the algorithm called observable) beyond 3 sqrt(trace cov): the positions a "
+        f"consumer would trust and should not. Runs over {100 * HONEST_BEYOND_3SIGMA:g} %: runs with more than "
+        f"{100 * HONEST_BEYOND_3SIGMA:g} % of their observable frames beyond. Every geometry of the campaign, grouped "
+        "by each axis it sweeps.\n"
+    )
+    L += markdown_head(
+        f"| algorithm | runs of | runs | observable frames | beyond 3 sigma | share | runs over {100 * HONEST_BEYOND_3SIGMA:g} % |"
+    )
+    for r in confident_wrong_rows(rows):
+        L.append(
+            f"| {r['algorithm']} | {r['group']} | {r['runs']} | {r['observable_frames']} | {r['beyond_frames']} | "
+            f"{_pct(r['beyond_pct'])} | {r['runs_over']} |"
+        )
+    L.append("")
     if failed:
         L.append("## Failed runs\n")
         for r in failed[:50]:

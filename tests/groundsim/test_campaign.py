@@ -22,6 +22,7 @@ from groundsim.evaluation.campaign import (
 from groundsim.evaluation.campaign_report import (
     REPORT_NAME,
     TABLE_NAME,
+    confident_wrong_rows,
 )
 from groundsim.evaluation.campaign_spec import (
     Geometry,
@@ -255,6 +256,43 @@ def test_score_track_figures_on_a_constructed_track():
 
 
 # --------------------------------------------------------------------------- the log and resumability
+
+
+def test_confident_wrong_rows_count_the_observable_frames_beyond_3_sigma_per_group():
+    def row(scenario, man, frames, beyond, status="ok"):
+        return {
+            "status": status,
+            "algorithm": "map",
+            "scenario": scenario,
+            "manoeuvre_scale": man,
+            "range_scale": 1.0,
+            "aspect_deg": 0.0,
+            "observable_frames": frames,
+            "beyond_3sigma_observable": beyond,
+        }
+
+    rows = [
+        row("P1", 1.0, 100, 0.0),
+        row("P1", 3.0, 50, 0.2),  # 10 frames beyond: over 1 %
+        row("P2", 3.0, 200, 0.005),  # 1 frame beyond: not over
+        row("P2", 1.0, 0, math.nan),  # nothing observable: counted as a run, no frames
+        row("P2", 1.0, 40, 1.0, status="failed"),  # failed runs are not figures
+    ]
+    got = {r["group"]: r for r in confident_wrong_rows(rows)}
+    # range and aspect were not swept: no groups of their own (the same figures as every run)
+    assert set(got) == {"all runs", "scenario P1", "scenario P2", "manoeuvre_scale 1", "manoeuvre_scale 3"}
+    assert got["all runs"] == {
+        "algorithm": "map",
+        "group": "all runs",
+        "runs": 4,
+        "observable_frames": 350,
+        "beyond_frames": 11,
+        "beyond_pct": pytest.approx(100 * 11 / 350),
+        "runs_over": 1,
+    }
+    assert (got["scenario P1"]["beyond_frames"], got["scenario P1"]["runs_over"]) == (10, 1)
+    assert (got["manoeuvre_scale 3"]["observable_frames"], got["manoeuvre_scale 3"]["beyond_frames"]) == (250, 11)
+    assert got["manoeuvre_scale 1"]["beyond_frames"] == 0 and got["manoeuvre_scale 1"]["runs"] == 2
 
 
 def test_a_torn_last_line_is_skipped_and_rows_round_trip(tmp_path):
