@@ -57,7 +57,7 @@ with one warning saying how far.
 
 ``--encoding``: ``auto`` takes the frames as stored (the first frame's depth; all must match);
 ``mono8`` takes a 16-bit frame's high byte (of a 14-bit camera's grey, the 6 highest bits: a dim target's contrast
-may not survive it); ``mono16`` widens 8-bit frames unchanged.  ``--fps``: the frame rate (default: a video's own,
+may not survive it); ``mono16`` widens 8-bit frames full scale to full scale (x 257, folder or video alike).  ``--fps``: the frame rate (default: a video's own,
 a MOT sequence's ``seqinfo.ini``'s, else 30).  A progress line goes to stderr every few seconds;
 ``--quiet`` drops it and the INFO lines.
 
@@ -68,7 +68,8 @@ it renames the tracks of the frames done (if any) into place, since they are val
 input; SIGTERM (a job's time limit, ``timeout``) is taken as Ctrl-C.
 ``--out`` must be a regular file or a new path (a folder, device or pipe is refused); through a symbolic link the
 file it points to is replaced, the link kept.  It must not be an input: the video, a frame of the input folder, or
-any image file in that folder (a later run would read it as a frame).
+any image file in that folder (a later run would read it as a frame), nor the files that describe the sequence
+(``seqinfo.ini``, anything under ``gt/``, Anti-UAV's label file), in the frames' folder or the one above it.
 
 A long input (3 s or more, and three of the chain's 15-frame confirmation windows) on which no object was
 confirmed ends with one warning saying why that is likely: the chain confirms point targets, peaked over a few
@@ -135,6 +136,10 @@ DEFAULT_IM_DIR = "img1"  # MOT's image folder when seqinfo.ini names none
 #: a folder whose frame numbers step by more than this (median) is named by something else (times): numbered by
 #: position.  A benchmark's own numbering steps by 1; a subsampled one (every 10th frame kept) by a few
 MAX_NUMBER_STEP = 30
+#: ... and a folder whose last number exceeds MAX_NUMBER_SPAN times its frame count plus MAX_NUMBER_OFFSET (a
+#: subsequence cut from a long recording keeps its numbers below that)
+MAX_NUMBER_SPAN = 100
+MAX_NUMBER_OFFSET = 100_000
 PROGRESS_EVERY_S = 5.0
 #: an input this long (and of LONG_INPUT_WINDOWS confirmation windows) on which nothing was confirmed is warned
 #: about: long enough that a point target in it would have been confirmed several times over
@@ -221,6 +226,19 @@ def _numbered(folder: Path, files: list[Path]) -> tuple[list[Path], list[int]]:
             float(np.median(steps)),
             ordered[0].name,
             ordered[1].name,
+        )
+        return ordered, list(range(1, len(ordered) + 1))
+    if number(ordered[-1]) > MAX_NUMBER_SPAN * len(ordered) + MAX_NUMBER_OFFSET:
+        # small steps but huge numbers: times of a fast camera (ms at 34 frames/s or more, from an epoch or a
+        # recording's start), not frame numbers; kept, they would pad an Anti-UAV result to millions of frames
+        log.warning(
+            "%s: the numbers in the frame names reach %d for %d frames (%s ... %s): not frame numbers (times?): "
+            "MOT frames are numbered by sorted position from 1",
+            folder,
+            number(ordered[-1]),
+            len(ordered),
+            ordered[0].name,
+            ordered[-1].name,
         )
         return ordered, list(range(1, len(ordered) + 1))
     for before, path in zip(ordered, ordered[1:]):
@@ -331,7 +349,10 @@ def _convert(px: np.ndarray, encoding: str, where: str) -> np.ndarray:
     if encoding == "mono8" and px.dtype == np.uint16:
         return (px >> 8).astype(np.uint8)
     if encoding == "mono16" and px.dtype == np.uint8:
-        return px.astype(np.uint16)
+        # full scale to full scale (x 257), as FFmpeg widens a video's 8-bit luma to gray16le: the same frames give
+        # the same 16-bit pixels from a folder and from a video, and the chain's 16-bit levels see 8-bit contrasts
+        # at their own scale
+        return px.astype(np.uint16) * np.uint16(257)
     return px
 
 
@@ -531,11 +552,14 @@ def open_frames(input_path: str, encoding: str = "auto", fps: float | None = Non
             if seq_length is not None and (numbers[-1] != seq_length or len(numbers) != seq_length):
                 log.warning(
                     "%s: seqinfo.ini's seqLength is %d, the folder holds %d frames numbered up to %d: the truth "
-                    "counts frames this run does not have, or the folder frames the truth does not",
+                    "counts frames this run does not have, or the folder frames the truth does not%s",
                     path,
                     seq_length,
                     len(numbers),
                     numbers[-1],
+                    " (TrackEval refuses a sequence whose tracks go beyond seqLength: fix seqinfo.ini or the folder)"
+                    if numbers[-1] > seq_length
+                    else "",
                 )
             frames = _folder_frames(files, numbers, encoding, converted_from)
             return FrameSource(path, "folder", rate, len(files), frames, converted_from, files)
@@ -561,6 +585,8 @@ def mot_rows(frame_number: int, update, box_px: float | None = None, primary_onl
         if primary_only and o.object_id != update.primary_id:
             continue
         x, y, w, h = _box(o, box_px)
+        if not all(math.isfinite(v) for v in (x, y, w, h)):
+            continue  # a scorer refuses the whole sequence over one non-finite box (TrackEval does)
         rows.append(f"{frame_number},{o.object_id},{x + 1:.3f},{y + 1:.3f},{w:.3f},{h:.3f},{o.score:.3f},-1,-1,-1\n")
     return rows
 
@@ -705,6 +731,16 @@ def _input_clash(out_path: str, src: FrameSource) -> str | None:
             f"--out {out_path}: an image file in the input folder {src.path}, which a later run would read as a "
             f"frame; give another file"
         )
+    # the files that describe the sequence (read by this tool or by a scorer): a MOT sequence's seqinfo.ini and
+    # gt/, Anti-UAV's label files, beside the frames' folder or one level up (MOT's img1/)
+    seq = src.path if src.kind == "folder" else src.path.parent
+    for folder in (seq, seq.parent):
+        for name in (SEQINFO_NAME, *LABEL_NAMES.values()):
+            if target == os.path.realpath(folder / name):
+                return f"--out {out_path}: the input's own {name}; give another file"
+        gt = os.path.realpath(folder / "gt")
+        if os.path.commonpath([target, gt]) == gt:
+            return f"--out {out_path}: inside the input's ground truth folder {folder / 'gt'}; give another file"
     return None
 
 
@@ -849,6 +885,12 @@ def _main(argv: Sequence[str] | None) -> int:
         if args.format == "anti-uav" and out is not None and done and not json_written and not out.committed:
             with contextlib.suppress(OutputError):  # said by _interrupted's commit, which fails alike
                 out.writelines(_anti_uav_json(boxes))
+            log.warning(
+                "%s: interrupted: the result holds the first %d frames' boxes only; the Anti-UAV scorer pairs it "
+                "with the labels in order and scores that prefix alone",
+                args.out,
+                len(boxes),
+            )
         return _interrupted(out, done)
     finally:
         if out is not None:

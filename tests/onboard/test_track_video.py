@@ -489,7 +489,7 @@ def test_a_mot_sequences_seqinfo_gives_the_rate_and_its_length_is_checked(tmp_pa
 
 
 @pytest.mark.parametrize("fmt", ["mot", "anti-uav"])
-def test_sigterm_ends_the_run_as_ctrl_c_does(tmp_path, capsys, monkeypatch, fmt):
+def test_sigterm_ends_the_run_as_ctrl_c_does(tmp_path, capsys, monkeypatch, caplog, fmt):
     """A job's time limit or ``timeout`` sends SIGTERM: the frames done are kept (an Anti-UAV result with their
     entries), no temporary file is left, and the handler the caller had is back afterwards."""
     import signal
@@ -513,4 +513,6 @@ def test_sigterm_ends_the_run_as_ctrl_c_does(tmp_path, capsys, monkeypatch, fmt)
         import json
 
         assert json.loads(out.read_text()) == {"res": [[], []]}  # nothing confirmed in two frames
+        # a scorer pairs res with the labels in order: said, since it would score that prefix alone
+        assert any("the first 2 frames' boxes only" in r.getMessage() for r in caplog.records)
     assert signal.getsignal(signal.SIGTERM) == before

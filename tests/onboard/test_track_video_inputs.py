@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 from pathlib import Path
 
 import cv2
@@ -209,6 +210,53 @@ def test_an_output_on_an_input_of_a_folder_is_refused(tmp_path, capsys, case):
     assert case != "a_new_image" or not out.exists()
 
 
+@pytest.mark.parametrize(
+    "relative, said",
+    [
+        ("seqinfo.ini", "the input's own seqinfo.ini"),
+        ("img1/seqinfo.ini", "the input's own seqinfo.ini"),
+        ("gt/gt.txt", "inside the input's ground truth folder"),
+        ("img1/IR_label.json", "the input's own IR_label.json"),
+    ],
+)
+def test_an_output_on_the_files_describing_the_sequence_is_refused(tmp_path, capsys, relative, said):
+    """A MOT sequence (seqinfo.ini, gt/, frames in img1/) or an Anti-UAV folder's label file: files this tool or a
+    scorer reads, which a run would have overwritten with its tracks."""
+    seq = tmp_path / "seq"
+    seq.mkdir()
+    _folder(seq / "img1", ["000001.png", "000002.png"])
+    (seq / "seqinfo.ini").write_text("[Sequence]\nimDir=img1\nframeRate=30\nseqLength=2\n")
+    (seq / "gt").mkdir()
+    (seq / "gt" / "gt.txt").write_text("1,1,1,1,6,6,1,1,1.0\n")
+    out = seq / relative
+    before = out.read_bytes() if out.exists() else None
+    assert main([str(seq / "img1"), "--out", str(out), "--quiet"]) == EXIT_INPUT
+    err = capsys.readouterr().err
+    assert err.startswith(f"--out {out}: {said}") and len(err.splitlines()) == 1, err
+    assert (out.read_bytes() if out.exists() else None) == before
+
+
+def test_mono16_widens_an_8_bit_folder_as_ffmpeg_widens_an_8_bit_video(tmp_path):
+    """Full scale to full scale (x 257) from a folder, as FFmpeg's gray16le does from a video of the same frames."""
+    frames = [_noise(k) for k in range(3)]
+    seq = tmp_path / "seq"
+    seq.mkdir()
+    for k, px in enumerate(frames):
+        assert cv2.imwrite(str(seq / f"{k + 1:06d}.png"), px)
+    px16 = next(open_frames(seq, "mono16").frames)[2]
+    assert px16.dtype == np.uint16 and np.array_equal(px16, frames[0].astype(np.uint16) * 257)
+    video = tmp_path / "v.mkv"
+    av = pytest.importorskip("av")
+    c = av.open(str(video), mode="w")
+    s = c.add_stream("ffv1", rate=30)  # lossless: the decoded frames are the written ones
+    s.height, s.width, s.pix_fmt = SIDE_PX, SIDE_PX, "gray"
+    for px in frames:
+        c.mux(s.encode(av.VideoFrame.from_ndarray(px, format="gray")))
+    c.mux(s.encode(None))
+    c.close()
+    assert np.array_equal(next(open_frames(video, "mono16").frames)[2], px16)
+
+
 def test_a_text_output_in_the_input_folder_is_allowed(tmp_path):
     seq = _folder(tmp_path / "seq", ["000001.png", "000002.png"])
     assert main([str(seq), "--out", str(seq / "tracks.txt"), "--quiet"]) == EXIT_OK
@@ -290,6 +338,21 @@ def test_names_that_are_times_are_numbered_by_position_and_said(tmp_path, monkey
     assert "step by a median 33" in warned and "numbered by sorted position" in warned
 
 
+def test_names_that_are_times_of_a_fast_camera_are_numbered_by_position_and_said(tmp_path, monkeypatch, caplog):
+    """Milliseconds at 60 frames/s step by 17, under the step test's 30: the size of the numbers against the frame
+    count says they are times (taken as frame numbers, 2 million missing frames were warned about and an Anti-UAV
+    result padded to them)."""
+    seq = _folder(tmp_path / "seq", [f"{2_000_000 + 17 * k}.png" for k in range(4)])
+    assert _frame_numbers_written(monkeypatch, tmp_path, seq) == [1, 2, 3, 4]
+    (warned,) = _records(caplog, logging.WARNING)
+    assert "reach 2000051 for 4 frames" in warned and "numbered by sorted position" in warned
+
+
+def test_a_subsequence_cut_from_a_long_recording_keeps_its_numbers(tmp_path, monkeypatch):
+    seq = _folder(tmp_path / "seq", [f"{n:06d}.png" for n in (5000, 5001, 5002)])
+    assert _frame_numbers_written(monkeypatch, tmp_path, seq) == [5000, 5001, 5002]
+
+
 def test_a_subsampled_numbering_keeps_its_numbers(tmp_path, monkeypatch):
     seq = _folder(tmp_path / "seq", [f"{n:06d}.png" for n in (1, 11, 21, 31)])  # every 10th frame kept
     assert _frame_numbers_written(monkeypatch, tmp_path, seq) == [1, 11, 21, 31]
@@ -347,3 +410,17 @@ def test_a_label_file_that_cannot_be_read_is_warned_about_and_res_left_as_it_is(
     assert json.loads(out.read_text())["res"] == [[]] * 3
     (line,) = _records(caplog, logging.WARNING)
     assert line.startswith(f"{seq / 'IR_label.json'}: not read (") and "res is not fitted" in line
+
+
+def test_a_box_that_is_not_finite_is_not_written():
+    """TrackEval refuses a whole sequence over one non-finite value: such an object is left out of its frame."""
+    from types import SimpleNamespace
+
+    good = SimpleNamespace(object_id=1, bbox=(10, 20, 3, 3), u_px=11.5, v_px=21.5, score=4.0)
+    bad = SimpleNamespace(object_id=2, bbox=(10, 20, 3, 3), u_px=math.nan, v_px=21.5, score=4.0)
+    upd = SimpleNamespace(confirmed=[good, bad], primary_id=1)
+    assert track_video.mot_rows(7, upd) == [
+        "7,1,11.000,21.000,3.000,3.000,4.000,-1,-1,-1\n",
+        "7,2,11.000,21.000,3.000,3.000,4.000,-1,-1,-1\n",
+    ]
+    assert track_video.mot_rows(7, upd, box_px=6.0) == ["7,1,9.500,19.500,6.000,6.000,4.000,-1,-1,-1\n"]
