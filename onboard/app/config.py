@@ -46,6 +46,7 @@ from collections.abc import Mapping
 from typing import Annotated, Any, Literal
 
 import yaml
+from pydantic import AfterValidator
 
 from onboard.app.health import DEFAULT_MAX_AGE_S
 from onboard.core.camera_section import PinholeSection
@@ -366,12 +367,22 @@ def _section(cls) -> Any:
     return dataclasses.field(default_factory=cls)
 
 
+def _not_the_fleet(name: str) -> str:
+    if name == "fleet":
+        raise Invalid("", "a vehicle name other than 'fleet' (the fleet fusion's key chunk)", name)
+    return name
+
+
 @config_dataclass
 class OnboardConfig:
     """The whole configuration.  ``OnboardConfig()`` is the built-in default, valid as is."""
 
+    # "fleet" is the fleet fusion's key chunk (irtrack/fleet/track): a daemon of that name would publish on the
+    # fusion's output and be ignored by it
     vehicle: Annotated[
-        str, Text(pattern=r"^[A-Za-z0-9_.-]+$", what="a name of letters, digits, '_', '.', '-' (one zenoh key chunk)")
+        str,
+        Text(pattern=r"^[A-Za-z0-9_.-]+$", what="a name of letters, digits, '_', '.', '-' (one zenoh key chunk)"),
+        AfterValidator(_not_the_fleet),
     ] = "uav1"
     mavlink: MavlinkConfig = _section(MavlinkConfig)
     zenoh: ZenohConfig = _section(ZenohConfig)

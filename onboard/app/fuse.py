@@ -37,7 +37,9 @@ at 30 Hz then cost one solve per period instead of about two, at no latency from
 Bad input never stops it and never becomes a fused point: it is counted by reason and logged at most once per
 ``--reject-log-interval-s`` per reason: ``bad_vehicle_name`` (a key chunk that is no daemon's vehicle name: no
 output key could carry it), ``not_json``, ``bad_track`` (the schema's reader names the key; an origin's altitude
-outside ``ORIGIN_ALT_RANGE_M`` too), ``too_many_vehicles``, ``bad_time_unix_us``, ``no_origin``, ``stale`` /
+outside ``ORIGIN_ALT_RANGE_M`` too), ``vehicle_not_configured`` (a vehicle outside ``--vehicles``, INFO: a name
+mistyped there shows), ``too_many_vehicles`` (a new name while ``MAX_VEHICLES`` are heard and none is silent; a
+silent one is forgotten to make room), ``bad_time_unix_us``, ``no_origin``, ``stale`` /
 ``future`` (common time more than ``--max-age-s`` before or after this machine's clock), ``stamp_jump`` (a stamp
 whose ``UTC - boot`` offset jumped from its vehicle's: held until the next stamps say glitch or step,
 :class:`~onboard.io.fleet_wire.CommonClock`), ``camera_far`` / ``camera_jump`` (a camera no vehicle of the fleet can
@@ -131,8 +133,9 @@ POLL_S = 0.1
 INBOX_MAX = 3000
 #: messages fused per turn of the main loop before it publishes what is due: a flood must not starve the output
 MAX_PER_TURN = 300
-#: vehicles the fusion keeps state for at most: a new name beyond them is refused (too_many_vehicles) rather than
-#: growing the status, the per-vehicle outputs and their publishers without bound
+#: vehicles the fusion keeps state for at most: a new name beyond them takes the place of the longest silent one,
+#: or is refused (too_many_vehicles) while none is silent, rather than growing the status, the per-vehicle outputs
+#: and their publishers without bound
 MAX_VEHICLES = 64
 #: a vehicle silent this long is forgotten (vehicle_forgotten): out of the status and the per-vehicle outputs,
 #: its place free for another
@@ -324,8 +327,14 @@ class Fusion:
 
     def receive(self, key: str, payload: bytes, arrival_unix_s: float) -> None:
         vehicle = vehicle_from_track_key(key)
-        if vehicle is None or (self.vehicles is not None and vehicle not in self.vehicles):
-            return  # the fusion's own output, or a vehicle not asked for
+        if vehicle is None:
+            return  # the fusion's own output
+        if self.vehicles is not None and vehicle not in self.vehicles:
+            # not asked for: counted (a name mistyped in --vehicles shows here), not fused
+            self.counter.count(
+                "vehicle_not_configured", f"{key}: not one of --vehicles {' '.join(self.vehicles)}", level=logging.INFO
+            )
+            return
         self.received += 1
         try:
             check_vehicle_name(vehicle)
@@ -470,10 +479,16 @@ class Fusion:
             self._touched.add(tid)
 
     def _heard(self, vehicle: str, arrival_unix_s: float) -> bool:
-        """Note a parsed track of ``vehicle`` (silent no more); False for a new vehicle beyond ``MAX_VEHICLES``."""
+        """Note a parsed track of ``vehicle`` (silent no more); False for a new vehicle beyond ``MAX_VEHICLES``
+        while none of them is silent (a silent one, the longest silent, is forgotten to make room: names that
+        sent once, a typo's or a flood's, must not lock the real vehicles out for ``FORGET_AFTER_S``)."""
         if vehicle not in self._last_arrival and len(self._last_arrival) >= MAX_VEHICLES:
-            self.counter.count("too_many_vehicles", f"{vehicle}: {MAX_VEHICLES} vehicles are fused at most")
-            return False
+            oldest = min(self._last_arrival, key=self._last_arrival.__getitem__)
+            quiet_s = arrival_unix_s - self._last_arrival[oldest]
+            if quiet_s <= self.silent_after_s:
+                self.counter.count("too_many_vehicles", f"{vehicle}: {MAX_VEHICLES} vehicles are fused at most")
+                return False
+            self._forget_vehicle(oldest, f"silent for {quiet_s:.1f} s, its place given to {vehicle}")
         self._last_arrival[vehicle] = arrival_unix_s
         if vehicle in self._silent:
             self._silent.discard(vehicle)
@@ -514,28 +529,30 @@ class Fusion:
     def _forget(self, now_unix_s: float) -> None:
         """Drop what is kept for vehicles silent for ``FORGET_AFTER_S``."""
         for v in [v for v, t in self._last_arrival.items() if now_unix_s - t > FORGET_AFTER_S]:
-            self.counter.count(
-                "vehicle_forgotten", f"{v}: no track for {now_unix_s - self._last_arrival[v]:.0f} s", level=logging.INFO
-            )
-            for kept in (
-                self._last_arrival,
-                self._time_sources,
-                self._origins,
-                self._cameras,
-                self._objects,
-                self._far_since,
-                self._clock_far,
-                self._stepped,
-                self._off_window,
-            ):
-                kept.pop(v, None)
-            for named in (self._silent, self._clock_refused, self._clock_flagged):
-                named.discard(v)
-            self.tracker.withdraw(v, "forgotten")
-            self.stream_check.forget(v)
-            self.clock_check.forget(v)
-            self.clock.forget(v)
-            self.forgotten.append(v)
+            self._forget_vehicle(v, f"no track for {now_unix_s - self._last_arrival[v]:.0f} s")
+
+    def _forget_vehicle(self, v: str, why: str) -> None:
+        """Drop what is kept for vehicle ``v`` (``vehicle_forgotten``, saying ``why``)."""
+        self.counter.count("vehicle_forgotten", f"{v}: {why}", level=logging.INFO)
+        for kept in (
+            self._last_arrival,
+            self._time_sources,
+            self._origins,
+            self._cameras,
+            self._objects,
+            self._far_since,
+            self._clock_far,
+            self._stepped,
+            self._off_window,
+        ):
+            kept.pop(v, None)
+        for named in (self._silent, self._clock_refused, self._clock_flagged):
+            named.discard(v)
+        self.tracker.withdraw(v, "forgotten")
+        self.stream_check.forget(v)
+        self.clock_check.forget(v)
+        self.clock.forget(v)
+        self.forgotten.append(v)
 
     def _ray_plausible(self, key: str, ray: Ray, time_sigma_why: str) -> bool:
         """False (counted) for a ray the solve must not take; ``time_sigma_why``: what its time sigma came from."""
@@ -716,13 +733,32 @@ def _origin(text: str) -> GeodeticOrigin:
 def _offset(text: str) -> tuple[str, float]:
     name, sep, value = text.partition("=")
     try:
-        check_vehicle_name(name)
+        _vehicle(name)
         v = float(value)
         if not sep or not math.isfinite(v):
             raise ValueError
-    except (ValueError, IrtrackError):
+    except (ValueError, argparse.ArgumentTypeError):
         raise argparse.ArgumentTypeError(f"expected NAME=SECONDS (UTC minus boot time), got {text!r}") from None
     return name, v
+
+
+def check_names(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Refuse (one line, exit 2) a vehicle named twice in ``--vehicles``, ``--clock-offset`` or ``--vehicle-noise``
+    (the last would win without a word) and, with ``--vehicles``, an offset or noise for a vehicle outside it."""
+    given = {
+        "--vehicles": list(args.vehicles or []),
+        "--clock-offset": [name for name, _ in args.clock_offset],
+        "--vehicle-noise": [name for name, _ in args.vehicle_noise],
+    }
+    for option, names in given.items():
+        twice = sorted({n for n in names if names.count(n) > 1})
+        if twice:
+            parser.error(f"{option}: {', '.join(twice)} given more than once")
+    if args.vehicles is not None:
+        for option in ("--clock-offset", "--vehicle-noise"):
+            outside = sorted(set(given[option]) - set(args.vehicles))
+            if outside:
+                parser.error(f"{option}: {', '.join(outside)} not one of --vehicles {' '.join(args.vehicles)}")
 
 
 def _vehicle(text: str) -> str:
@@ -835,7 +871,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _main(argv: Sequence[str] | None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    check_names(parser, args)
     setup_logging(args.log_level, "text")  # a service beside the daemons: their log lines, one parser for both
     noise = noise_models(args)
     config = FleetConfig()

@@ -90,6 +90,7 @@ The association of rays with targets, and the tracker that runs it all per ray, 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -615,6 +616,12 @@ def triangulate(
 # --------------------------------------------------------------------------- the verdict
 
 
+def _ratio_along(P: np.ndarray, u: np.ndarray, range_m: float) -> float:
+    """The range sigma along the unit line of sight ``u`` of covariance ``P`` over ``range_m`` (inf at range 0)."""
+    sig = math.sqrt(max(float(u @ P @ u), 0.0))
+    return sig / range_m if range_m > 0 else math.inf
+
+
 @dataclass(frozen=True)
 class Contribution:
     """One vehicle's share of a fleet estimate: its newest ray's time (s), how many rays, the range from
@@ -632,7 +639,7 @@ class FleetEstimate(StateEstimate):
     """A fleet target's state at ``t_s`` (fleet clock, s) in the fleet's NED frame: ``p_ned_m``,
     ``v_ned_mps`` (3,), ``cov_p_ned_m2``, ``cov_v_ned_m2ps2`` (3, 3; the position's range floor applied when
     unobservable), ``observable`` (module docstring, "Verdict"), ``range_sigma_ratio`` (the worst
-    contributing vehicle's, before the floor), ``adequacy_p`` (the residuals' chi-square p-value),
+    contributing vehicle's, of the published covariance: after the floor when unobservable), ``adequacy_p`` (the residuals' chi-square p-value),
     ``contributions`` (one per vehicle in the solve) and the :class:`Triangulation` it came from."""
 
     target_id: int
@@ -725,6 +732,13 @@ def fleet_verdict(
         for u, rng, f_m, ray in zip(los_u, los_r, floor_m, (newest[v] for v in sol.vehicles)):
             across = np.eye(3) - np.outer(u, u)
             cov_p = cov_p + across * (float(np.max(ray.sigma_cross_rad)) * (rng + f_m)) ** 2
+        # the ratios published beside it are the floored covariance's, as the daemon's are: a consumer that
+        # thresholds on them must not read the solution's own, confident figure next to the floored covariance
+        contributions = [
+            dataclasses.replace(c, range_sigma_ratio=_ratio_along(cov_p, u, c.range_m))
+            for c, u in zip(contributions, los_u)
+        ]
+        worst_ratio = max(c.range_sigma_ratio for c in contributions)
     return FleetEstimate(
         target_id=target_id,
         t_s=sol.t_s,

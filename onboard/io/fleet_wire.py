@@ -11,7 +11,8 @@ Keys::
 ``target_id``, ``time_unix_us`` (the estimate's time, UTC microseconds: the newest line of sight in it),
 ``lat_deg``, ``lon_deg``, ``alt_m`` (WGS84, as ``irtrack.track/2``), ``ned_m`` with its ``origin``
 ``{lat_deg, lon_deg, alt_m}``, ``vel_ned_mps``, ``sigma_ned_m``, ``sigma_vel_ned_mps`` (1 sigma),
-``cov_ned_m2`` (3 x 3), ``range_sigma_ratio`` (the worst contributing vehicle's range sigma over range),
+``cov_ned_m2`` (3 x 3), ``range_sigma_ratio`` (the worst contributing vehicle's range sigma over range, of the
+covariance published: the range floor included when unobservable),
 ``observable`` (the verdict of :mod:`onboard.estimation.fleet`), ``vehicles``: one object per contributing
 vehicle ``{vehicle, time_unix_us (its newest line of sight), rays, range_m, range_sigma_ratio,
 time_source}``; the per-vehicle key adds ``vehicle`` (the addressee) and ``range_m`` (from its newest

@@ -169,6 +169,10 @@ def test_a_single_vehicle_is_unobservable_and_its_covariance_holds_the_truth(tar
     u = (est.p_ned_m - r0.p_cam_ned_m) / np.linalg.norm(est.p_ned_m - r0.p_cam_ned_m)
     r_est = float(np.linalg.norm(est.p_ned_m - r0.p_cam_ned_m))
     assert math.sqrt(u @ est.cov_p_ned_m2 @ u) >= max(0.5 * r_est, 150.0) * 0.999
+    # the ratio published beside the covariance is the floored covariance's, not the solution's own confident one
+    (c,) = est.contributions
+    assert c.range_sigma_ratio == est.range_sigma_ratio
+    assert c.range_sigma_ratio == math.inf if c.range_m == 0 else c.range_sigma_ratio * c.range_m >= 150.0 * 0.999
 
 
 def test_parallel_rays_are_unobservable_and_do_not_pair():
@@ -465,7 +469,12 @@ def test_two_vehicles_whose_rays_disagree_by_two_degrees_fail_the_residual_test_
     assert est.solution.dof >= MIN_RESIDUAL_DOF
     assert est.adequacy_p == pytest.approx(chi2.sf(est.solution.cost, est.solution.dof), abs=1e-300)
     assert est.adequacy_p < FleetConfig().verdict.adequacy_p_min
-    assert est.range_sigma_ratio < FleetConfig().verdict.observability_max_sigma_range_ratio  # not what refuses it
+    # not what refuses it: the solution's own range sigmas pass (the published ratio is the floored covariance's)
+    for c in est.contributions:
+        r = next(r for r in reversed(bad) if r.vehicle == c.vehicle)
+        own = math.sqrt(r.los_ned @ est.solution.cov_p_ned_m2 @ r.los_ned) / c.range_m
+        assert own < FleetConfig().verdict.observability_max_sigma_range_ratio
+    assert est.range_sigma_ratio >= 0.5 * 0.999
     assert not est.observable
 
 

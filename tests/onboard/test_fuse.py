@@ -175,7 +175,8 @@ def test_its_own_output_and_other_vehicles_are_not_input():
     fusion = new_fusion(vehicles=["uav1", "uav2"])
     fusion.receive(fleet_track_key(), b"{}", T0_UNIX_S)
     fusion.receive("irtrack/uav9/track", b"{}", T0_UNIX_S)
-    assert fusion.received == 0 and fusion.counter.total == 0
+    # not fused, but a vehicle outside --vehicles is counted: a name mistyped there shows
+    assert fusion.received == 0 and fusion.counter.counts == {"vehicle_not_configured": 1}
     assert vehicle_from_track_key("irtrack/fleet/track") is None
     assert vehicle_from_track_key("irtrack/uav1/fleet/track") is None
     assert vehicle_from_track_key("irtrack/uav1/track") == "uav1"
@@ -218,6 +219,7 @@ def test_its_own_output_and_other_vehicles_are_not_input():
         ),
         (["--origin", "0,0,1e300"], "ALT in [-1000, 100000] m"),
         (["--clock-tolerance-ms", "0"], "--clock-tolerance-ms: expected a number in (0, 10000], got '0'"),
+        (["--clock-offset", "fleet=3"], "NAME=SECONDS"),
     ],
 )
 def test_bad_options_exit_2_on_one_line(argv, words, capsys):
@@ -226,6 +228,41 @@ def test_bad_options_exit_2_on_one_line(argv, words, capsys):
     assert exc.value.code == 2
     err = capsys.readouterr().err
     assert words in err and err.count("\n") == 1
+
+
+@pytest.mark.parametrize(
+    "argv, words",
+    [
+        (["--vehicles", "uav1", "uav1"], "--vehicles: uav1 given more than once"),
+        (["--clock-offset", "uav1=1", "--clock-offset", "uav1=2"], "--clock-offset: uav1 given more than once"),
+        (
+            ["--vehicle-noise", "uav2:camera_white_m=1", "--vehicle-noise", "uav2:camera_offset_m=1"],
+            "--vehicle-noise: uav2 given more than once",
+        ),
+        (["--vehicles", "uav1", "uav2", "--clock-offset", "uav3=1"], "--clock-offset: uav3 not one of --vehicles"),
+        (
+            ["--vehicles", "uav1", "--vehicle-noise", "uav02:camera_white_m=1"],
+            "--vehicle-noise: uav02 not one of --vehicles uav1",
+        ),
+    ],
+)
+def test_a_vehicle_named_twice_or_outside_vehicles_is_refused(argv, words, capsys):
+    from onboard.app.fuse import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert words in err and err.count("\n") == 1, err
+
+
+def test_a_daemon_cannot_be_named_as_the_fusion():
+    from onboard.app.config import build_config
+    from onboard.core.schema import SchemaError
+
+    with pytest.raises(SchemaError, match="vehicle.*other than .fleet."):
+        build_config({"vehicle": "fleet"})
+    assert build_config({"vehicle": "fleet2"}).vehicle == "fleet2"
 
 
 # --------------------------------------------------------------------------- the real process
@@ -826,6 +863,23 @@ def test_only_parsed_tracks_make_a_vehicle_and_a_long_silent_one_is_forgotten():
     assert later["silent"] == [] and later["vehicles"] == {} and fusion.counter["vehicle_forgotten"] == MAX_VEHICLES
     run_pair_with(fusion, np.arange(FORGET_AFTER_S + 2.0, FORGET_AFTER_S + 3.0, 1 / 30), np.random.default_rng(4))
     assert set(fusion.status(T0_UNIX_S + FORGET_AFTER_S + 3.0)["vehicles"]) == {"uav1", "uav2"}
+
+
+def test_names_that_sent_once_give_their_places_to_vehicles_that_track():
+    """64 one-shot names (a flood, or typos) filled every place: the real vehicles were refused for 10 minutes.
+    A new name takes the place of the longest silent one; while none is silent it is refused."""
+    from onboard.app.fuse import MAX_VEHICLES
+
+    fusion = new_fusion()
+    good = json.loads(payload_of(UAV1, 0.4, np.random.default_rng(0), 99))
+    for i in range(MAX_VEHICLES):
+        name = f"junk{i}"
+        fusion.receive(f"irtrack/{name}/track", json.dumps({**good, "vehicle": name}).encode(), T0_UNIX_S + 0.4)
+    fusion.receive("irtrack/late/track", json.dumps({**good, "vehicle": "late"}).encode(), T0_UNIX_S + 0.45)
+    assert fusion.counter["too_many_vehicles"] == 1  # none silent yet: refused
+    run_pair_with(fusion, np.arange(2.0, 3.0, 1 / 30), np.random.default_rng(4))
+    assert fusion.counter["too_many_vehicles"] == 1 and fusion.counter["vehicle_forgotten"] == 2
+    assert {"uav1", "uav2"} <= set(fusion.status(T0_UNIX_S + 3.0)["vehicles"])
 
 
 def _stray(t, rng, k) -> bytes:
