@@ -7,7 +7,9 @@ truth of every frame (the same flight, frames and navigation errors as ``grounds
     DIR/manifest.json                 schema irtrack.dataset/1: scenarios (name, file, sha256), seeds,
                                       nav-noise case, bit depth, formats, sequences (name, frames, size)
     DIR/<seq>/img1/000001.png ...     the IR frames, PNG mono 8 or 16 bit (MOT's 1-based file names)
-    DIR/<seq>/labels.csv              per frame: target id, sub-pixel centroid, box, visibility
+    DIR/<seq>/labels.csv              per frame: target id, sub-pixel centroid, box, visibility, visibility_state
+                                      (visible / occluded / out_of_frame), the camera's sensor_status (ok /
+                                      frozen / dropped: its flat-field events)
     DIR/<seq>/cameras.csv             per frame: intrinsics, camera pose true and measured (NED + WGS84)
     DIR/<seq>/truth.csv               the 3-D truth (groundsim.world.truth columns, as ``groundsim run --truth``)
     DIR/<seq>/truth.objects.csv       with a scene: every object per frame (groundsim.world.truth.OBJECT_COLUMNS:
@@ -16,7 +18,8 @@ truth of every frame (the same flight, frames and navigation errors as ``grounds
     DIR/<seq>/seqinfo.ini, gt/gt.txt  --format mot: MOT Challenge layout (TrackEval's MotChallenge2DBox reads it)
     DIR/coco.json                     --format coco: COCO detection + 1-keypoint ("centroid") JSON, every sequence
     DIR/<seq>/obs.csv                 --format obs: python -m onboard.reconstruct's input (onboard.app.reconstruct
-                                      OBS_COLUMNS): each frame with the target in the image, its label's pixel (a
+                                      OBS_COLUMNS): each frame whose image shows the target (in the image, not
+                                      behind a cloud, not a dropped or frozen frame), its label's pixel (a
                                       perfect detector's, as an ideal pinhole's) and the camera pose the telemetry
                                       MEASURED (the run's navigation errors), t_s on the scenario's clock
 
@@ -70,7 +73,11 @@ An object behind a cloud, the target included, is a COCO ``iscrowd`` 1 annotatio
 ``occluded``, keypoint flag 1): pycocotools' ``COCOeval`` ignores it, neither a miss nor, where a detection
 matches it, a false positive, as TrackEval treats the MOT rows of hidden objects (consider 0, class 8)
 (``COCOeval`` reads no other "ignore" field: it sets its own from ``iscrowd``).
-A frame the camera model dropped (its shutter closed, ``ffc.mode: dropped``) is written as an all-zero image. COCO:
+A frame the camera model dropped (its shutter closed, ``ffc.mode: dropped``) is written as an all-zero image, its
+target behind the shutter as behind a cloud.  A frozen frame (``ffc.mode: frozen``: the camera repeats its last
+image) shows the target where it was: its COCO annotation, at its position now, is an ignore region (``iscrowd``
+1, ``visibility_state`` ``frozen``), its MOT row stays (a tracker coasting through those frames is right), and
+labels.csv's ``sensor_status`` says ``frozen``.  An occluded target's COCO ``visibility`` is 0, as MOT's. COCO:
 boxes ``[x, y, w, h]`` in continuous 0-based pixels (and as a 4-corner polygon ``segmentation``), one keypoint
 ``[u, v, 2]`` = the sub-pixel centroid, plus ``track_id``, ``visibility`` (the target's), ``visibility_state`` (every
 annotation's: ``visible`` or ``occluded``), ``centroid_px`` on each annotation and ``sequence``, ``frame_index``,
@@ -166,6 +173,8 @@ LABEL_COLUMNS = (
     "visibility",
     "in_image",
     "range_m",
+    "visibility_state",
+    "sensor_status",
 )
 _INTRINSIC_COLUMNS = ("fx_px", "fy_px", "cx_px", "cy_px", "width_px", "height_px", "k1", "k2", "p1", "p2", "k3")
 _POSE_COLUMNS = ("n_m", "e_m", "d_m", "qw", "qx", "qy", "qz", "lat_deg", "lon_deg", "alt_m")
@@ -205,6 +214,10 @@ class TargetLabel:
     visibility: float
     in_image: bool
     occluded: bool = False  # behind a cloud (a scene's label): MOT's consider 0, class 8
+    # the camera repeated an earlier image (flat-field correction, ffc.mode frozen): the target is drawn where it
+    # was then, so COCO's annotation at its position now is an ignore region (MOT's row stays: a tracker coasting
+    # through the frozen frames is right)
+    frozen: bool = False
 
     def __post_init__(self) -> None:
         for name in ("x_px", "y_px", "w_px", "h_px", "visibility"):
@@ -489,6 +502,8 @@ def export_sequence(scenario, seed: int, out_dir, options: DatasetOptions, progr
             )
             if any(o.object_id == 0 and o.visibility == "occluded" for o in fr.labels):
                 lab = dataclasses.replace(lab, occluded=True)
+            if fr.sensor_status == "frozen":
+                lab = dataclasses.replace(lab, frozen=True)
             labels.append((frame, lab, fr.time_boot_us))
             w_lab.writerow(
                 [
@@ -506,13 +521,17 @@ def export_sequence(scenario, seed: int, out_dir, options: DatasetOptions, progr
                     _fmt(lab.visibility),
                     int(lab.in_image),
                     _fmt(tr.range_m),
+                    "occluded" if lab.occluded else "visible" if lab.in_image else "out_of_frame",
+                    fr.sensor_status,
                 ]
             )
             q_mg = None if c.q_mount_from_gimbal is None else c.q_mount_from_gimbal[j]
             p_meas, q_meas = measured_camera_pose(
                 core.vehicle_state(i), core.nav_error(i), c.obs_p_ned_m[j], mount, origin, q_mg
             )
-            if lab.in_image and math.isfinite(lab.u_px) and math.isfinite(lab.v_px):
+            # a perfect detector's: not behind a cloud, nor on a black (dropped) or repeated (frozen) image
+            shown = lab.in_image and not lab.occluded and fr.sensor_status == "ok"
+            if shown and math.isfinite(lab.u_px) and math.isfinite(lab.v_px):
                 obs_rows.append(_obs_row(K, tr.t_s, lab.u_px, lab.v_px, p_meas, q_meas))
             w_cam.writerow(
                 [
@@ -589,6 +608,7 @@ def coco_document(summaries: list[SequenceSummary], description: str) -> dict:
                 }
             )
             if lab.has_box:
+                ignored = lab.occluded or lab.frozen  # not drawn there: COCOeval's ignore region (iscrowd)
                 annotations.append(
                     {
                         "id": len(annotations) + 1,
@@ -596,13 +616,13 @@ def coco_document(summaries: list[SequenceSummary], description: str) -> dict:
                         "category_id": TARGET_ID,
                         "bbox": [round(lab.x_px, 4), round(lab.y_px, 4), round(lab.w_px, 4), round(lab.h_px, 4)],
                         "area": round(lab.w_px * lab.h_px, 4),
-                        "iscrowd": int(lab.occluded),
+                        "iscrowd": int(ignored),
                         "segmentation": [_box_polygon(lab)],
-                        "keypoints": [float(lab.u_px), float(lab.v_px), 1 if lab.occluded else 2],
+                        "keypoints": [float(lab.u_px), float(lab.v_px), 1 if ignored else 2],
                         "num_keypoints": 1,
                         "centroid_px": [float(lab.u_px), float(lab.v_px)],
-                        "visibility": round(lab.visibility, 4),
-                        "visibility_state": "occluded" if lab.occluded else "visible",
+                        "visibility": 0.0 if lab.occluded else round(lab.visibility, 4),
+                        "visibility_state": "occluded" if lab.occluded else "frozen" if lab.frozen else "visible",
                         "track_id": TARGET_ID,
                     }
                 )

@@ -50,9 +50,17 @@ def dataset(tmp_path_factory):
 
 
 def _read_csv(path: Path) -> dict[str, np.ndarray]:
+    """Each column as numbers, or as text where it holds words (labels.csv's visibility_state, sensor_status)."""
     with open(path, newline="") as f:
         rows = list(csv.DictReader(f))
-    return {k: np.array([float(r[k]) for r in rows]) for k in rows[0]}
+
+    def column(k: str) -> np.ndarray:
+        try:
+            return np.array([float(r[k]) for r in rows])
+        except ValueError:
+            return np.array([r[k] for r in rows])
+
+    return {k: column(k) for k in rows[0]}
 
 
 def _tree_digest(root: Path) -> dict[str, str]:

@@ -552,10 +552,50 @@ def test_dropped_flat_field_frames_have_no_pixels_and_the_dataset_writes_them_bl
     assert frames[1].labels[0].visibility == "visible"
     assert all(lab.visibility != "visible" for fr in frames[2:4] for lab in fr.labels)
     assert frames[4].labels[0].visibility == "visible"
-    summaries, _ = export_dataset([sc], [0], tmp_path, DatasetOptions(duration_s=0.2), progress=False)
+    summaries, _ = export_dataset(
+        [sc], [0], tmp_path, DatasetOptions(duration_s=0.2, formats=("mot", "coco", "obs")), progress=False
+    )
     img = tmp_path / summaries[0].name / "img1"
     assert not cv2.imread(str(img / "000003.png"), cv2.IMREAD_UNCHANGED).any()
     assert cv2.imread(str(img / "000005.png"), cv2.IMREAD_UNCHANGED).any()
+    # labels.csv says which frames are black and that the target is not shown on them (the gt and COCO did)
+    labels = list(csv.DictReader(open(tmp_path / summaries[0].name / "labels.csv", encoding="ascii")))
+    assert [r["sensor_status"] for r in labels] == ["ok", "ok", "dropped", "dropped", "ok", "ok"]
+    assert [r["visibility_state"] for r in labels] == [
+        "visible",
+        "visible",
+        "occluded",
+        "occluded",
+        "visible",
+        "visible",
+    ]
+    # a perfect detector finds nothing on a black frame: obs.csv has the 4 frames that show the target
+    obs = list(csv.DictReader(open(tmp_path / summaries[0].name / "obs.csv", encoding="ascii")))
+    assert len(obs) == 4
+    doc = json.loads((tmp_path / "coco.json").read_text())
+    hidden = [a for a in doc["annotations"] if a["iscrowd"]]
+    assert len(hidden) == 2 and all(a["visibility"] == 0.0 and a["visibility_state"] == "occluded" for a in hidden)
+
+
+def test_frozen_flat_field_frames_are_labelled_as_repeated_images(tmp_path):
+    """The camera repeats its last image for the event's frames: the target is drawn where it was, so its COCO
+    annotation at its position now is an ignore region (not a miss and a false positive at once), obs.csv leaves
+    those frames out, and labels.csv says which they are; MOT's row stays (a tracker coasting through is right)."""
+    d = _c5_with(ffc={"first_s": 0.05, "frames": 2, "mode": "frozen"})
+    sc = scenario_from_dict(d, scenarios_dir() / "C5.yaml")
+    summaries, _ = export_dataset(
+        [sc], [0], tmp_path, DatasetOptions(duration_s=0.2, formats=("mot", "coco", "obs")), progress=False
+    )
+    seq = tmp_path / summaries[0].name
+    labels = list(csv.DictReader(open(seq / "labels.csv", encoding="ascii")))
+    assert [r["sensor_status"] for r in labels] == ["ok", "ok", "frozen", "frozen", "ok", "ok"]
+    assert len(list(csv.DictReader(open(seq / "obs.csv", encoding="ascii")))) == 4
+    doc = json.loads((tmp_path / "coco.json").read_text())
+    target = [a for a in doc["annotations"] if a["track_id"] == 1]
+    assert [a["visibility_state"] for a in target] == ["visible", "visible", "frozen", "frozen", "visible", "visible"]
+    assert [a["iscrowd"] for a in target] == [0, 0, 1, 1, 0, 0]
+    gt = [line.split(",") for line in (seq / "gt" / "gt.txt").read_text().splitlines()]
+    assert [int(g[0]) for g in gt if g[1] == "1" and g[6] == "1"] == [1, 2, 3, 4, 5, 6]
 
 
 def test_scenes_command_prints_a_line_per_scene_and_writes_small_pictures(tmp_path, capsys):
