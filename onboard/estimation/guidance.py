@@ -73,6 +73,7 @@ _V_EPS_MPS = 1e-3
 #: MAV_AUTOPILOT_PX4 (common.xml): its OFFBOARD mode needs a setpoint stream faster than PX4_MIN_SETPOINT_RATE_HZ, before
 #: it accepts the mode and for as long as it is in it (else it falls back to COM_OBL_RC_ACT)
 MAV_AUTOPILOT_PX4 = 12
+MAV_AUTOPILOT_ARDUPILOTMEGA = 3
 PX4_MIN_SETPOINT_RATE_HZ = 2.0
 #: the slowest ``setpoint_rate_hz`` taken for PX4: at PX4's own minimum, a setpoint late by one turn of the daemon's
 #: main loop (or a busy CPU) makes a gap PX4 counts as the stream lost; a third of a second between setpoints leaves
@@ -159,6 +160,23 @@ class GuidanceConfig:
             )
         if self.enabled and not self.advise:  # the loop sends the advice: without it nothing would ever go out
             raise Invalid("enabled", "false while guidance.advise is false (the loop sends the advice)", True)
+        # each autopilot's custom_mode encoding: a value the other's would never report (the gate would wait in
+        # not_accepting for good, saying nothing about why)
+        if self.accept_autopilot == MAV_AUTOPILOT_PX4 and (
+            self.accept_custom_mode & 0xFFFF or not (self.accept_custom_mode >> 16) & 0xFF
+        ):
+            raise Invalid(
+                "accept_custom_mode",
+                "PX4's encoding for accept_autopilot 12: the main mode << 16 (+ the sub mode << 24), e.g. OFFBOARD = "
+                "393216 (6 << 16)",
+                self.accept_custom_mode,
+            )
+        if self.accept_autopilot == MAV_AUTOPILOT_ARDUPILOTMEGA and self.accept_custom_mode > 0xFFFF:
+            raise Invalid(
+                "accept_custom_mode",
+                "ArduPilot's mode number for accept_autopilot 3 (e.g. 4 = ArduCopter GUIDED), not PX4's encoding",
+                self.accept_custom_mode,
+            )
         if self.accept_autopilot == MAV_AUTOPILOT_PX4 and self.setpoint_rate_hz < PX4_SETPOINT_RATE_FLOOR_HZ:
             raise Invalid(
                 "setpoint_rate_hz",

@@ -111,6 +111,27 @@ def test_config_refuses_inconsistent_limits(field, value):
         build(GuidanceConfig, {field: value})
 
 
+@pytest.mark.parametrize(
+    "autopilot, mode, ok",
+    [
+        (12, 393216, True),  # PX4 OFFBOARD: main mode 6 << 16
+        (12, 4, False),  # ArduCopter's GUIDED number under PX4: PX4 never reports it
+        (12, 0, False),  # no main mode
+        (12, 393216 + 1, False),  # PX4's low 16 bits are reserved (0)
+        (3, 4, True),  # ArduCopter GUIDED
+        (3, 393216, False),  # PX4's encoding under ArduPilot
+    ],
+)
+def test_a_custom_mode_the_autopilot_never_reports_is_refused(autopilot, mode, ok):
+    """The gate would wait in not_accepting for good, saying nothing: refused at load, naming the field."""
+    settings = {"accept_autopilot": autopilot, "accept_custom_mode": mode}
+    if ok:
+        assert build(GuidanceConfig, settings).accept_custom_mode == mode
+    else:
+        with pytest.raises(SchemaError, match="accept_custom_mode"):
+            build(GuidanceConfig, settings)
+
+
 def test_bad_posterior_is_refused():
     with pytest.raises(InputError, match="cov_pv"):
         TargetPosterior(0.0, [1.0, 0, 0], [0.0, 0, 0], np.zeros((6, 6)))
