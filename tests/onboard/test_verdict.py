@@ -81,6 +81,26 @@ def test_a_far_mirror_mode_is_ambiguity_not_spread():
     assert beyond <= HONEST_BEYOND_3SIGMA
 
 
+def _online_confidence(name: str, geometry, noise: str, seed: int, frames: int, cfg: MapConfig) -> tuple[int, int]:
+    """(estimates called observable, of them beyond 3 sqrt(trace P)) of the sliding window over ``frames`` 30 Hz
+    frames of scenario ``name`` in the campaign's ``geometry`` (range scale, aspect deg, manoeuvre scale)."""
+    from groundsim.evaluation.campaign_spec import Geometry, derive_scenario
+
+    sc = derive_scenario(load_scenario(reference_scenario_paths()[name]), Geometry(*geometry))
+    nc = load_noise_cases()[noise]
+    t = np.arange(frames) / 30.0
+    truth, obs = synthesize_scenario(sc, nc, seed, t_s=t)
+    sw = SlidingWindowEstimator(noise=estimator_noise_model(nc), map_config=cfg)
+    observable = beyond = 0
+    for i in range(t.size):
+        est = sw.add(t[i], obs.uv_px[i], sc.camera.intrinsics, obs.p_cam_ned_m[i], obs.q_ned_from_cam[i])
+        if est is not None and est.observable:
+            observable += 1
+            e = np.linalg.norm(est.p_ned_m - truth.p_target_ned_m[i])
+            beyond += bool(e > 3 * math.sqrt(np.trace(est.cov_p_ned_m2)))
+    return observable, beyond
+
+
 @pytest.mark.parametrize("turn_starts", [True, False])
 def test_a_turning_target_is_not_called_observable_at_the_straight_basins_range(turn_starts):
     """P3's circling target with the observer manoeuvring at 4x its reference: over the first 9 s the CT
@@ -88,22 +108,8 @@ def test_a_turning_target_is_not_called_observable_at_the_straight_basins_range(
     stays in the straight basin, which explains the bearings with a target 10-17 % closer.  With the turned
     starts (the default) nothing is called observable there that is beyond 3 sigma; without them (the
     contrast, so that the test can fail) the window reports the straight basin's range as observable."""
-    from groundsim.evaluation.campaign_spec import Geometry, derive_scenario
-
-    sc = derive_scenario(load_scenario(reference_scenario_paths()["P3"]), Geometry(1.0, 0.0, 4.0))
-    nc = load_noise_cases()["px0.3"]
-    t = np.arange(270) / 30.0
-    truth, obs = synthesize_scenario(sc, nc, 0, t_s=t)
     cfg = MapConfig() if turn_starts else MapConfig(turn_rate_starts_radps=())
-    sw = SlidingWindowEstimator(noise=estimator_noise_model(nc), map_config=cfg)
-    observable = beyond = 0
-    for i in range(t.size):
-        est = sw.add(t[i], obs.uv_px[i], sc.camera.intrinsics, obs.p_cam_ned_m[i], obs.q_ned_from_cam[i])
-        if est is not None and est.observable:
-            observable += 1
-            beyond += bool(
-                np.linalg.norm(est.p_ned_m - truth.p_target_ned_m[i]) > 3 * math.sqrt(np.trace(est.cov_p_ned_m2))
-            )
+    observable, beyond = _online_confidence("P3", (1.0, 0.0, 4.0), "px0.3", 0, 270, cfg)
     if turn_starts:
         assert beyond == 0
     else:
@@ -131,22 +137,8 @@ def test_a_far_solution_that_pins_range_itself_is_a_rival_not_a_vague_ambiguity(
     turning mode at 1.5x the range holds ~96 % of the posterior while the straight truth, a few per cent, pins
     range itself.  Two confident answers that disagree: never observable (``max_rival_mass``); without the
     rule (the contrast) every observable estimate of the window is beyond 3 sigma."""
-    from groundsim.evaluation.campaign_spec import Geometry, derive_scenario
-
-    sc = derive_scenario(load_scenario(reference_scenario_paths()["P1"]), Geometry(0.5, 180.0, 3.0))
-    nc = load_noise_cases()["RTK"]
-    t = np.arange(300) / 30.0
-    truth, obs = synthesize_scenario(sc, nc, 1, t_s=t)
     cfg = MapConfig() if rule else MapConfig(max_rival_mass=1.0)
-    sw = SlidingWindowEstimator(noise=estimator_noise_model(nc), map_config=cfg)
-    observable = beyond = 0
-    for i in range(t.size):
-        est = sw.add(t[i], obs.uv_px[i], sc.camera.intrinsics, obs.p_cam_ned_m[i], obs.q_ned_from_cam[i])
-        if est is not None and est.observable:
-            observable += 1
-            beyond += bool(
-                np.linalg.norm(est.p_ned_m - truth.p_target_ned_m[i]) > 3 * math.sqrt(np.trace(est.cov_p_ned_m2))
-            )
+    observable, beyond = _online_confidence("P1", (0.5, 180.0, 3.0), "RTK", 1, 300, cfg)
     if rule:
         assert beyond == 0
     else:
