@@ -184,9 +184,18 @@ def _fleet_track(payload: bytes) -> dict | None:
 
     try:
         obj = json.loads(payload)
-    except ValueError:
+    except (ValueError, RecursionError):  # (RecursionError: nested too deep)
         return None
     return obj if isinstance(obj, dict) and obj.get("schema") == FLEET_TRACK_SCHEMA else None
+
+
+def fleet_track_line(obj: dict) -> str | None:
+    """:func:`format_fleet_track` of ``obj``, or None when its fields are not of their types (any peer may publish
+    on the key: a string for a number, 1e30 microseconds, a number for a list must not end the watcher)."""
+    try:
+        return format_fleet_track(obj)
+    except (ValueError, TypeError, OverflowError, OSError, AttributeError):
+        return None
 
 
 def _counts_text(counts: WatchCounts) -> str:
@@ -314,15 +323,16 @@ def _receive(
             track = track_from_json(payload)
         except InputError as exc:
             fleet = _fleet_track(payload)  # --vehicle fleet: the fusion's triangulated targets
-            if fleet is not None:
+            line = None if fleet is None else fleet_track_line(fleet)
+            if fleet is not None and line is not None:
                 counts.add_fleet(fleet)
-                print(
-                    payload.decode("utf-8", "replace") if as_json else format_fleet_track(fleet), file=out, flush=True
-                )
+                print(payload.decode("utf-8", "replace") if as_json else line, file=out, flush=True)
                 continue
             counts.bad += 1
             if as_json:
                 print(payload.decode("utf-8", "replace"), file=out, flush=True)
+            elif fleet is not None:
+                print(f"not a fleet track ({len(payload)} bytes): a field of the wrong type", file=err, flush=True)
             else:
                 print(f"not a track ({len(payload)} bytes): {exc}", file=err, flush=True)
             continue

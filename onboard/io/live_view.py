@@ -40,7 +40,8 @@ any client could write megabytes a second into the daemon's log.  Those loggers'
 :class:`ClientLog` instead: each ERROR / WARNING is counted by kind (:func:`client_error_kind`) and only the first of
 a kind reaches the log; the SDK's INFO lines on clients registering and leaving give the clients connected now.
 A viewer that leaves without closing its WebSocket (a tab closed, a radio link lost), which the SDK reports as an
-ERROR, is a departure, not an error: counted in ``clients_reset``, not logged.
+ERROR (in the handshake's words, or the socket's on a receive or a send: reset by peer, broken pipe), is a departure,
+not an error: counted in ``clients_reset``, not logged.
 :meth:`LiveView.stats`: ``client_errors`` (by kind), ``clients`` and ``clients_reset``.  A few refusals (a subscription repeated, a
 channel advertised by a client without the capability) the SDK logs at DEBUG only, and are not counted: at DEBUG it
 would copy every malformed message a client sends, whole, into a log record.
@@ -122,9 +123,16 @@ SDK_WEBSOCKET_LOGGER = "foxglove.websocket"
 MAX_CLIENT_ERROR_KINDS = 32
 _CLIENT_ADDRESS = re.compile(r"\[[0-9A-Fa-f:.%\w]*\]:\d+|\d{1,3}(?:\.\d{1,3}){3}:\d+")
 _CLIENT_REGISTERED = re.compile(r"^(Registered|Unregistered) client (\S+)$")
-# the SDK's ERROR for a viewer gone without the WebSocket close (a browser tab or a radio link dropped): not something
-# the client sent wrong, so counted apart (clients_reset) and not logged
-_CLIENT_RESET = "Connection reset without closing handshake"
+# the SDK's ERRORs for a viewer gone without the WebSocket close (a browser tab or a radio link dropped): its reset
+# in the handshake's words, or the socket's own on a receive or a send (ECONNRESET 104, EPIPE 32); not something the
+# client sent wrong, so counted apart (clients_reset) and not logged
+_CLIENT_RESETS = (
+    "Connection reset without closing handshake",
+    "Connection reset by peer",
+    "Broken pipe",
+    "(os error 104)",
+    "(os error 32)",
+)
 
 
 @config_dataclass
@@ -225,7 +233,7 @@ class ClientLog(logging.Filter):
                     else:
                         self._addresses.discard(m.group(2))
             return False
-        if _CLIENT_RESET in message:
+        if any(words in message for words in _CLIENT_RESETS):
             with self._lock:
                 self._resets += 1
             return False

@@ -24,6 +24,7 @@ from onboard.core.frames import GeodeticOrigin, rotmat_from_quat
 from onboard.io.live_view import (
     Q_ENU_FROM_NED,
     SCENE_TOPIC,
+    ClientLog,
     LiveView,
     LiveViewConfig,
     ellipsoid_of_cov,
@@ -366,6 +367,25 @@ def test_what_clients_get_wrong_is_counted_by_kind_and_logged_once_a_kind():
     assert len(said) == 2 and all(r.levelno >= logging.WARNING for r in sdk)  # the SDK's INFO lines counted, not said
     assert not [r for r in sdk if "without closing handshake" in r.getMessage()]
     assert "the next ones counted in client_errors.invalid_message_from" in said[0]
+
+
+@pytest.mark.parametrize(
+    "message",
+    [
+        "Connection reset without closing handshake",
+        "Error receiving from client 127.0.0.1:50544: Connection reset by peer (os error 104)",
+        "Error sending message to client 127.0.0.1:50544: Broken pipe (os error 32)",
+    ],
+)
+def test_a_viewer_gone_abruptly_is_a_reset_whatever_socket_error_says_it(message):
+    """A tab closed or a radio link lost, in the handshake's words or the socket's (a client's RST: ECONNRESET on
+    the receive, EPIPE on a send): a departure, not something the client sent wrong, and not logged."""
+    import logging
+
+    log = ClientLog()
+    record = logging.LogRecord("foxglove.websocket", logging.ERROR, __file__, 0, message, (), None)
+    assert log.filter(record) is False
+    assert log.resets == 1 and log.errors == {}
 
 
 def test_a_client_error_kind_is_the_sdks_words_without_the_clients_address():

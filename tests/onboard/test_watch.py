@@ -374,6 +374,34 @@ def test_the_fleet_key_shows_the_fusions_targets_one_line_each():
     assert (counts.tracks, counts.with_position, counts.observable, counts.bad) == (2, 2, 1, 0)
 
 
+def test_a_fleet_track_with_fields_of_the_wrong_types_is_counted_bad_not_a_crash():
+    """Any peer may publish on the key: a payload nested too deep, a string for a number, 1e30 microseconds, a number
+    for a list ended the watcher with a traceback (exit 1, which says "no track")."""
+    from onboard.app.watch import _receive
+
+    good = json.loads(_fleet_payload(True))
+    payloads = [b"[" * 100_000] + [
+        json.dumps({**good, **change}).encode()
+        for change in ({"lat_deg": "x"}, {"time_unix_us": 1e30}, {"ned_m": 5}, {"vehicles": 5}, {"time_unix_us": "a"})
+    ]
+    inbox: queue.Queue[bytes] = queue.Queue()
+    for p in payloads:
+        inbox.put(p)
+    counts, out, err = WatchCounts(), io.StringIO(), io.StringIO()
+    done = threading.Event()
+
+    def stop_when_all_seen() -> None:
+        deadline = time.monotonic() + 10.0
+        while counts.bad < len(payloads) and time.monotonic() < deadline:
+            time.sleep(0.01)
+        done.set()
+
+    threading.Thread(target=stop_when_all_seen, daemon=True).start()
+    _receive(inbox, counts, seconds=10.0, as_json=False, out=out, err=err, hint="", stop=done)
+    assert counts.bad == len(payloads) and counts.tracks == 0 and out.getvalue() == ""
+    assert err.getvalue().count("not a fleet track") == 5 and err.getvalue().count("not a track") == 1
+
+
 def test_a_summary_of_nothing_says_what_to_check():
     assert summary_line(WatchCounts(), 2.0).endswith(
         "; nothing arrived: is the daemon running, and zenoh connected to it?"
