@@ -759,13 +759,14 @@ class MavlinkVehicle:
                 alt_mm,
                 UINT16_MAX if no_fix else 80,
                 UINT16_MAX if no_fix else 120,
-                vel,
-                cog,
+                # without a fix the speed and course are unknown as well (UINT16_MAX), their accuracy too (0)
+                UINT16_MAX if no_fix else vel,
+                UINT16_MAX if no_fix else cog,
                 0 if no_fix else 14,
                 alt_mm + round(GEOID_UNDULATION_M * 1000.0),
                 h_acc_mm,
                 v_acc_mm,
-                200,
+                0 if no_fix else 200,
                 0,
                 0,
             )

@@ -633,9 +633,10 @@ def set_message_interval_message(
 def requested_interval(param2: float, default, from_us=lambda us: us) -> tuple[bool, Any]:
     """What a received MAV_CMD_SET_MESSAGE_INTERVAL asks with its ``param2`` (microseconds), as
     ``(accepted, interval)``: -1 stops the message (None), 0 restores ``default``, N > 0 is N us
-    (``from_us(N)``, in the caller's unit); NaN, below -1 or beyond an int32 (MESSAGE_INTERVAL.interval_us,
-    which must be able to report it: ~36 min) is refused (False, None)."""
-    if not math.isfinite(param2) or param2 < -1 or round(param2) > INT32_MAX:
+    (``from_us(N)``, in the caller's unit); NaN, a fraction (a whole number of microseconds, whose -1 and 0 are
+    sentinels: -0.6 must not stop a stream nor 0.4 reset it), below -1 or beyond an int32
+    (MESSAGE_INTERVAL.interval_us, which must be able to report it: ~36 min) is refused (False, None)."""
+    if not math.isfinite(param2) or param2 != int(param2) or param2 < -1 or param2 > INT32_MAX:
         return False, None
     us = round(param2)
     if us == -1:

@@ -631,6 +631,11 @@ def test_gnss_outage_withholds_global_position_and_reports_no_fix_while_attitude
     out_fix = [g.fix_type for g in gps if not outage[0] <= g.time_usec - 1_700_000_000_000_000 < outage[1]]
     assert in_fix and set(in_fix) == {mavlink2.GPS_FIX_TYPE_NO_FIX}
     assert out_fix and set(out_fix) == {mavlink2.GPS_FIX_TYPE_3D_FIX}
+    # without a fix the speed, course and their accuracy are unknown too (common.xml: UINT16_MAX, 0), not the truth's
+    during = [g for g in gps if outage[0] <= g.time_usec - 1_700_000_000_000_000 < outage[1]]
+    assert {(g.vel, g.cog, g.vel_acc, g.eph, g.epv) for g in during} == {(65535, 65535, 0, 65535, 65535)}
+    after = [g for g in gps if not outage[0] <= g.time_usec - 1_700_000_000_000_000 < outage[1]]
+    assert all(g.vel < 65535 and g.vel_acc > 0 for g in after)
 
 
 # ----------------------------------------------------------------------------- home, relative and ellipsoidal altitude

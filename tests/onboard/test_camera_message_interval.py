@@ -70,6 +70,16 @@ def test_the_reply_packs_with_pymavlink_and_goes_to_the_requester():
     assert back.get_type() == "MESSAGE_INTERVAL" and (back.message_id, back.interval_us) == (275, 100_000)
 
 
+@pytest.mark.parametrize("interval_us", [-0.6, 0.4, 1.5])
+def test_a_fraction_of_a_microsecond_is_denied_not_rounded_into_a_sentinel(interval_us):
+    """param2 is a whole number of microseconds whose -1 (stop) and 0 (default) are sentinels: -0.6 rounded to -1
+    stopped the stream, 0.4 to 0 reset it, each ACCEPTED."""
+    proto = _proto(image_status_hz=10.0)
+    out, _ = proto.handle(_cmd(cp.MAV_CMD_SET_MESSAGE_INTERVAL, 275, interval_us), 1.0, 0)
+    assert _ack(out)["result"] == cp.MAV_RESULT_DENIED
+    assert _interval(proto, 275) == (cp.MAV_RESULT_ACCEPTED, {"message_id": 275, "interval_us": 100_000})
+
+
 @pytest.mark.parametrize("interval_us", [2**31, 3e9])
 def test_an_interval_message_interval_cannot_report_is_denied_and_the_old_one_kept(interval_us):
     """MESSAGE_INTERVAL.interval_us is an int32: an interval beyond it, once accepted, made every later report of it
