@@ -235,11 +235,14 @@ def parse_start_time(text: str | None) -> int | None:
     if str(text).strip().lower() == "now":
         return time.time_ns() // 1000
     try:
-        return parse_utc_us(text)
+        us = parse_utc_us(text)
     except ValueError:
         raise ConfigError(
             f"--start-time-utc: expected now or an ISO 8601 UTC time such as 2026-01-01T12:00:00Z, got {text!r}"
         ) from None
+    if us < 0:  # SYSTEM_TIME's time_unix_usec is unsigned: no time before the UNIX epoch goes on the wire
+        raise ConfigError(f"--start-time-utc: expected a time from 1970-01-01T00:00:00Z on, got {text!r}")
+    return us
 
 
 @dataclass(frozen=True)

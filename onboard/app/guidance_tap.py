@@ -26,7 +26,7 @@ from onboard.app.config import OnboardConfig
 from onboard.core.irframe import IrFrame
 from onboard.estimation.guidance import Advice, GuidanceAdvisor, GuidancePlanner, SetpointGate, advice_to_json
 
-__all__ = ["GuidanceTap", "fixed_pod_heading_warning", "make_guidance_tap"]
+__all__ = ["GuidanceTap", "fixed_pod_heading_warning", "make_guidance_tap", "moving_geofence_warning"]
 
 log = logging.getLogger(__name__)
 
@@ -76,6 +76,20 @@ def fixed_pod_heading_warning(config: OnboardConfig) -> str | None:
     )
 
 
+def moving_geofence_warning(config: OnboardConfig) -> str | None:
+    """What to warn of when guidance is in the loop with no fixed NED origin (``pose.origin`` null): the geofence
+    box (``guidance.geofence_north_m`` / ``_east_m``) is then centred on each run's first position fix, so it moves
+    with wherever the daemon starts; None otherwise.  A warning, not a refusal: a box about the take-off point is
+    what a field test often wants."""
+    if not config.guidance.enabled or config.pose.origin is not None:
+        return None
+    return (
+        "guidance in the loop (guidance.enabled) with no pose.origin: the geofence (guidance.geofence_north_m, "
+        "geofence_east_m) is centred on this run's first position fix and moves with it from run to run; set "
+        "pose.origin to fix it on the ground"
+    )
+
+
 class GuidanceTap:
     """Advice from the newest (track, pose), published through ``publish(bytes)`` once :meth:`attach` gave it."""
 
@@ -84,7 +98,8 @@ class GuidanceTap:
     def __init__(self, config: OnboardConfig, advisor: GuidanceAdvisor, clock: Any = time.monotonic) -> None:
         self.vehicle = config.vehicle
         self.in_loop = config.guidance.enabled
-        self._heading_warning = fixed_pod_heading_warning(config)  # logged once, at start
+        # logged once each, at start
+        self._warnings = [w for w in (fixed_pod_heading_warning(config), moving_geofence_warning(config)) if w]
         self.altitude_reference = config.guidance.altitude_reference
         self.home_alt_amsl_m: float | None = None  # from the autopilot link (setpoint_step), for a band above home
         self.advisor = advisor
@@ -116,8 +131,8 @@ class GuidanceTap:
         self._publish = publish
 
     def start(self) -> None:
-        if self._heading_warning:
-            log.warning("%s", self._heading_warning)
+        for warning in self._warnings:
+            log.warning("%s", warning)
         self._thread = threading.Thread(target=self._loop, name="irtrack-guidance", daemon=True)
         self._thread.start()
 

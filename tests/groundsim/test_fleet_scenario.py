@@ -311,6 +311,10 @@ def test_truth_paths_start_times_and_fleet_run_configs():
     assert parse_start_time("now") > F1_START_UNIX_US - 10**15  # the wall clock, in us
     with pytest.raises(ConfigError, match="^--start-time-utc: "):
         parse_start_time("soon")
+    # before the UNIX epoch: said as the option's, not as an internal field's (SYSTEM_TIME's time is unsigned)
+    with pytest.raises(ConfigError, match="^--start-time-utc: expected a time from 1970-01-01T00:00:00Z on"):
+        parse_start_time("1960-01-01T00:00:00Z")
+    assert parse_start_time("1970-01-01T00:00:00Z") == 0
     sc = load_scenario(F1)
     cfg = RunConfig(sc, duration_s=1.0, mavlink_by_vehicle=(("uav2", "udpout:127.0.0.1:9"),))
     assert cfg.mavlink_by_vehicle == (("uav1", "udpout:127.0.0.1:14540"), ("uav2", "udpout:127.0.0.1:9"))

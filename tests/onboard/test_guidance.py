@@ -402,6 +402,31 @@ def test_guidance_in_the_loop_with_a_fixed_pod_and_no_heading_limit_is_warned_at
     assert [r.getMessage() for r in caplog.records if "max_los_off_heading_deg" in r.getMessage()] == [why]
 
 
+def test_guidance_in_the_loop_without_a_fixed_origin_warns_that_the_geofence_moves_with_the_first_fix(caplog):
+    """With pose.origin null (the shipped default) the geofence box is centred on each run's first fix: said once at
+    start, naming the keys, when setpoints go out; nothing with an origin or without the loop."""
+    import logging
+
+    from onboard.app.config import OnboardConfig
+    from onboard.app.guidance_tap import make_guidance_tap, moving_geofence_warning
+    from onboard.core.schema import build as build_cfg
+
+    origin = {"lat_deg": 32.0, "lon_deg": 118.8, "alt_m": 0.0}
+
+    def cfg(guidance, pose=None):
+        return build_cfg(OnboardConfig, {"guidance": guidance, "pose": pose or {}})
+
+    why = moving_geofence_warning(cfg({"enabled": True}))
+    assert why is not None and "pose.origin" in why and "guidance.geofence_north_m" in why
+    assert moving_geofence_warning(cfg({"enabled": True}, {"origin": origin})) is None
+    assert moving_geofence_warning(cfg({"enabled": False})) is None  # advice only: nothing is commanded
+    tap = make_guidance_tap(cfg({"enabled": True}))
+    with caplog.at_level(logging.WARNING, logger="onboard.app.guidance_tap"):
+        tap.start()
+    tap.close(1.0)
+    assert [r.getMessage() for r in caplog.records if "pose.origin" in r.getMessage()] == [why]
+
+
 def test_the_altitude_band_is_above_home_by_default_so_it_holds_at_any_site_elevation():
     """A site 488 m above sea level: a vehicle 60 m above home is inside the default 20-150 m band (it would be
     far above it AMSL); until the autopilot has said where home is, there is no reference and no advice."""
