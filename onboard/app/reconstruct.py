@@ -119,8 +119,14 @@ from onboard.app.cli_args import OneLineParser, nonnegative_float, sigterm_as_in
 from onboard.app.output_files import create_beside, output_target, same_file_clash
 from onboard.core.errors import InputError, IrtrackError
 from onboard.core.frames import QUAT_NORM_TOL
-from onboard.estimation.crb import range_sigma_ratios
-from onboard.estimation.map_estimator import EstimationError, MapConfig, MapEstimator, MapResult, NoiseModel
+from onboard.estimation.map_estimator import (
+    EstimationError,
+    MapConfig,
+    MapEstimator,
+    MapResult,
+    NoiseModel,
+    range_sigma_ratios,
+)
 from onboard.estimation.observations import Observations
 from onboard.estimation.paper import PaperConfig, PaperEstimator, PaperResult
 from onboard.estimation.window_problem import (

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg as sla
 
-from onboard.estimation.map_estimator import MapEstimator, MotionPrior, WindowProblem
+from onboard.estimation.map_estimator import MapEstimator, MotionPrior, WindowProblem, range_sigma_ratios
 from onboard.estimation.observations import Observations
 from onboard.estimation.sliding import SlidingConfig
 from onboard.estimation.spline import KnotGrid
@@ -84,15 +84,6 @@ class BayesianCrb:
 
 def _rms_m(P: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.einsum("fii->f", P))))
-
-
-def range_sigma_ratios(P: np.ndarray, p_true_ned_m: np.ndarray, p_cam_ned_m: np.ndarray) -> np.ndarray:
-    """(F,): each point's range sigma under ``P`` (F, 3, 3) over its range, along the line of sight from
-    ``p_cam_ned_m`` to ``p_true_ned_m`` (a bound at the truth, or an estimate's own covariance at the estimate)."""
-    los = p_true_ned_m - p_cam_ned_m
-    r = np.linalg.norm(los, axis=1)
-    u = los / r[:, None]
-    return np.sqrt(np.maximum(np.einsum("fi,fij,fj->f", u, P, u), 0.0)) / r
 
 
 def _range_sigma_ratio(P: np.ndarray, p_true_ned_m: np.ndarray, p_cam_ned_m: np.ndarray) -> float:

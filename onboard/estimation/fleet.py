@@ -639,8 +639,9 @@ class FleetEstimate(StateEstimate):
     """A fleet target's state at ``t_s`` (fleet clock, s) in the fleet's NED frame: ``p_ned_m``,
     ``v_ned_mps`` (3,), ``cov_p_ned_m2``, ``cov_v_ned_m2ps2`` (3, 3; the position's range floor applied when
     unobservable), ``observable`` (module docstring, "Verdict"), ``range_sigma_ratio`` (the worst
-    contributing vehicle's, of the published covariance: after the floor when unobservable), ``adequacy_p`` (the residuals' chi-square p-value),
-    ``contributions`` (one per vehicle in the solve) and the :class:`Triangulation` it came from."""
+    contributing vehicle's, of the published covariance: after the floor when unobservable), ``adequacy_p`` (the
+    residuals' chi-square p-value), ``contributions`` (one per vehicle in the solve) and the :class:`Triangulation`
+    it came from."""
 
     target_id: int
     range_sigma_ratio: float

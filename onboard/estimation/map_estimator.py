@@ -90,6 +90,7 @@ __all__ = [
     "SolveResult",
     "Mode",
     "range_floor",
+    "range_sigma_ratios",
     "across_range_widened",
 ]
 
@@ -306,6 +307,15 @@ class Mode:
     factor: tuple[np.ndarray, np.ndarray]
     log_evidence: float
     mean_range_m: float
+
+
+def range_sigma_ratios(P: np.ndarray, p_ned_m: np.ndarray, p_cam_ned_m: np.ndarray) -> np.ndarray:
+    """(F,): each point's range sigma under ``P`` (F, 3, 3) over its range, along the line of sight from
+    ``p_cam_ned_m`` to ``p_ned_m`` (an estimate's own covariance at the estimate, or a bound at the truth)."""
+    los = p_ned_m - p_cam_ned_m
+    r = np.linalg.norm(los, axis=1)
+    u = los / r[:, None]
+    return np.sqrt(np.maximum(np.einsum("fi,fij,fj->f", u, P, u), 0.0)) / r
 
 
 def range_floor(
@@ -715,22 +725,14 @@ class MapEstimator:
     def _median_ratio(self, p: np.ndarray, P: np.ndarray, cam: np.ndarray) -> float:
         """The reported range sigma over range, median over the window, of positions ``p`` with covariances ``P``
         seen from ``cam`` (the verdict's ratio of a single model, inflated as reported)."""
-        los = p - cam
-        rng = np.linalg.norm(los, axis=1)
-        u = los / rng[:, None]
-        sig_r = np.sqrt(np.maximum(np.einsum("fi,fij,fj->f", u, P, u), 0.0))
-        return float(np.median(sig_r / rng)) * self.config.sigma_inflation
+        return float(np.median(range_sigma_ratios(P, p, cam))) * self.config.sigma_inflation
 
     def _moments(self, mode: Mode):
         """Positions (F, 3), point covariances (F, 3, 3) and max sigma_range / range of a mode."""
         prob, theta, fac = mode.problem, mode.theta, mode.factor
         p = prob.positions(theta)
         P = prob.point_covariances(prob.covariance(fac))
-        los = p - prob.obs.p_cam_ned_m
-        rng = np.linalg.norm(los, axis=1)
-        u = los / rng[:, None]
-        ratio = float(np.max(np.sqrt(np.maximum(np.einsum("fi,fij,fj->f", u, P, u), 0.0)) / rng))
-        return p, P, ratio
+        return p, P, float(np.max(range_sigma_ratios(P, p, prob.obs.p_cam_ned_m)))
 
     def _turned(self, prob: WindowProblem, theta: np.ndarray) -> list[np.ndarray]:
         """``theta`` turning at +- each of ``turn_rate_starts_radps`` (none unless ``prob``'s prior has a turn rate)."""

@@ -376,14 +376,25 @@ def test_setpoints_are_paced_on_a_schedule_so_a_late_turn_does_not_stretch_the_n
     assert tap.next_setpoint_s == math.inf  # advice only: nothing for the main loop to wake for
 
 
+def _warned_at_start(config, caplog, words: str) -> list[str]:
+    """The WARNING lines holding ``words`` that a guidance tap of ``config`` logs when it starts (then closed)."""
+    import logging
+
+    from onboard.app.guidance_tap import make_guidance_tap
+
+    tap = make_guidance_tap(config)
+    with caplog.at_level(logging.WARNING, logger="onboard.app.guidance_tap"):
+        tap.start()
+    tap.close(1.0)
+    return [r.getMessage() for r in caplog.records if words in r.getMessage()]
+
+
 def test_guidance_in_the_loop_with_a_fixed_pod_and_no_heading_limit_is_warned_at_start(caplog):
     """config/onboard.yaml ships a fixed pod and max_los_off_heading_deg 180 (no limit): an autopilot that yaws along
     the commanded velocity can turn the pod away from the target in a cross-track manoeuvre.  Warned once at start,
     naming the keys, unless the limit keeps the target within half the horizontal field of view (22.7 deg here)."""
-    import logging
-
     from onboard.app.config import OnboardConfig
-    from onboard.app.guidance_tap import fixed_pod_heading_warning, make_guidance_tap
+    from onboard.app.guidance_tap import fixed_pod_heading_warning
     from onboard.core.schema import build as build_cfg
 
     def cfg(guidance, gimballed=False):
@@ -395,20 +406,15 @@ def test_guidance_in_the_loop_with_a_fixed_pod_and_no_heading_limit_is_warned_at
     assert fixed_pod_heading_warning(cfg({"enabled": True, "max_los_off_heading_deg": 22.0})) is None
     assert fixed_pod_heading_warning(cfg({"enabled": True}, gimballed=True)) is None  # the pod looks where it likes
     assert fixed_pod_heading_warning(cfg({"enabled": False})) is None  # advice only: nothing is commanded
-    tap = make_guidance_tap(cfg({"enabled": True}))
-    with caplog.at_level(logging.WARNING, logger="onboard.app.guidance_tap"):
-        tap.start()
-    tap.close(1.0)
-    assert [r.getMessage() for r in caplog.records if "max_los_off_heading_deg" in r.getMessage()] == [why]
+    assert _warned_at_start(cfg({"enabled": True}), caplog, "max_los_off_heading_deg") == [why]
 
 
 def test_guidance_in_the_loop_without_a_fixed_origin_warns_that_the_geofence_moves_with_the_first_fix(caplog):
     """With pose.origin null (the shipped default) the geofence box is centred on each run's first fix: said once at
     start, naming the keys, when setpoints go out; nothing with an origin or without the loop."""
-    import logging
 
     from onboard.app.config import OnboardConfig
-    from onboard.app.guidance_tap import make_guidance_tap, moving_geofence_warning
+    from onboard.app.guidance_tap import moving_geofence_warning
     from onboard.core.schema import build as build_cfg
 
     origin = {"lat_deg": 32.0, "lon_deg": 118.8, "alt_m": 0.0}
@@ -420,11 +426,7 @@ def test_guidance_in_the_loop_without_a_fixed_origin_warns_that_the_geofence_mov
     assert why is not None and "pose.origin" in why and "guidance.geofence_north_m" in why
     assert moving_geofence_warning(cfg({"enabled": True}, {"origin": origin})) is None
     assert moving_geofence_warning(cfg({"enabled": False})) is None  # advice only: nothing is commanded
-    tap = make_guidance_tap(cfg({"enabled": True}))
-    with caplog.at_level(logging.WARNING, logger="onboard.app.guidance_tap"):
-        tap.start()
-    tap.close(1.0)
-    assert [r.getMessage() for r in caplog.records if "pose.origin" in r.getMessage()] == [why]
+    assert _warned_at_start(cfg({"enabled": True}), caplog, "pose.origin") == [why]
 
 
 def test_the_altitude_band_is_above_home_by_default_so_it_holds_at_any_site_elevation():
