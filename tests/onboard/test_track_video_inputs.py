@@ -18,7 +18,7 @@ import onboard.app.track_video as track_video
 from onboard.app.track_video import EXIT_INPUT, EXIT_OK, main, open_frames
 
 SIDE_PX = 32  # above the chain's 16 x 16 minimum, small enough to keep each test fast
-LOGGER = "onboard.app.track_video"
+LOGGERS = ("onboard.app.track_video", "onboard.io.frame_input")  # the command and its reader
 
 
 def _noise(k: int, h_px: int = SIDE_PX, w_px: int = SIDE_PX) -> np.ndarray:
@@ -34,7 +34,7 @@ def _folder(folder: Path, names: list[str], side_px: int = SIDE_PX) -> Path:
 
 
 def _records(caplog, level: int) -> list[str]:
-    return [r.getMessage() for r in caplog.records if r.name == LOGGER and r.levelno == level]
+    return [r.getMessage() for r in caplog.records if r.name in LOGGERS and r.levelno == level]
 
 
 def _frame_numbers_written(monkeypatch, tmp_path: Path, folder: Path) -> list[int]:
