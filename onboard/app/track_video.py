@@ -45,7 +45,9 @@ number behind one common prefix (``000001.png``, ``17.png``, ``frame_000001.png`
 Anti-UAV conventions, ffmpeg's ``frame_%06d``) the number is the MOT frame, so a missing file leaves a gap rather
 than shifting every later frame against the benchmark's truth; names numbered from 0 are moved up by one (MOT
 counts from 1).  Gaps are warned about once (how many frames, the first gap), and two files with one number
-(``1.png`` and ``0001.png``) are refused.  Otherwise frames are numbered by their sorted position from 1: an INFO
+(``1.png`` and ``0001.png``) are refused.  Names whose numbers are times rather than frame numbers (a median
+step over 30, or a last number over 100 times the frame count plus 100 000) are numbered by sorted position from
+1, with a WARNING.  Otherwise frames are numbered by their sorted position from 1: an INFO
 line says so, a WARNING when most names are numbered (a stray image among the frames is tracked as one).
 Frame K is taken ``(K - 1) / fps`` seconds after the first, so the tracks are predicted over a gap as over frames
 the daemon drops; ``--fps`` (or the video's or ``seqinfo.ini``'s rate) sets that time.

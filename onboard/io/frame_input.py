@@ -7,8 +7,8 @@ frames or ``IR.mp4`` / ``infrared.mp4``), "Frame numbers" (a folder's names give
 the one frame size and depth, and ``--encoding`` (``auto``, ``mono8``, ``mono16``).  Here that is done once, for
 any caller: a :class:`FrameSource` holds the frame rate, the frame count where known and the iterator of
 ``(MOT frame number, name, pixels)``; every input it cannot take is one :class:`~onboard.core.errors.InputError`
-naming the file (and, for a ``seqinfo.ini`` key, the key); what it can take but doubts (gaps in the numbering, a
-``seqLength`` that disagrees, a damaged video) is one warning on this module's logger.
+naming the file (and, for a ``seqinfo.ini`` key, the key); what it can take but doubts (gaps in the numbering, numbers that
+look like times, a ``seqLength`` that disagrees, a damaged video) is one warning on this module's logger.
 """
 
 from __future__ import annotations

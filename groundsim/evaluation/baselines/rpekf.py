@@ -19,7 +19,7 @@ with radial sigma ``r_i (rho - 1) / sqrt(12)`` (so the hypotheses tile the range
 cross-range sigma ``r_i sigma_z``; velocity ``N(0, speed_sigma_mps^2 I)``.  Weights are updated with
 each filter's innovation likelihood; the reported estimate is the Gaussian-mixture mean and
 covariance (spread of the filters included).  ``observable`` when the mixture's radial sigma / range
-is below ``observable_sigma_ratio`` (3 %, the threshold irtrack's MAP estimator uses).
+is below ``observable_sigma_ratio`` (3 %; irtrack's MAP estimator uses 5.5 %, its own calibration).
 
 Smoother.  :meth:`RangeParameterisedEkf.smoothed` runs the Rauch-Tung-Striebel backward pass
 (Rauch, Tung & Striebel 1965) over each filter's stored history and mixes the smoothed tracks with
