@@ -55,7 +55,8 @@ class LockstepGuidance:
 
         cfg = dataclasses.replace(cfg, guidance=dataclasses.replace(cfg.guidance, enabled=True))
         self._now = -math.inf
-        tap = make_guidance_tap(cfg, clock=lambda: self._now)
+        # each frame is handed over as it arrives (no queue, no pipeline delay): received_ns 0 on a clock_ns at 0
+        tap = make_guidance_tap(cfg, clock=lambda: self._now, clock_ns=lambda: 0)
         assert tap is not None  # guidance.enabled needs guidance.advise (GuidanceConfig)
         self.tap = tap
         g = cfg.guidance

@@ -95,7 +95,13 @@ class GuidanceTap:
 
     name = "guidance"
 
-    def __init__(self, config: OnboardConfig, advisor: GuidanceAdvisor, clock: Any = time.monotonic) -> None:
+    def __init__(
+        self,
+        config: OnboardConfig,
+        advisor: GuidanceAdvisor,
+        clock: Any = time.monotonic,
+        clock_ns: Any = time.monotonic_ns,
+    ) -> None:
         self.vehicle = config.vehicle
         self.in_loop = config.guidance.enabled
         # logged once each, at start
@@ -104,6 +110,7 @@ class GuidanceTap:
         self.home_alt_amsl_m: float | None = None  # from the autopilot link (setpoint_step), for a band above home
         self.advisor = advisor
         self._clock = clock
+        self._clock_ns = clock_ns  # the clock FrameResult.received_ns is on (the daemon's frame receipt)
         self.gate = SetpointGate(config.guidance)
         self._pose: tuple[float, Any, Any] | None = None  # (clock when it came, vehicle p NED, v NED)
         # (clock until which it holds, v NED, the track_id it was planned for) of the advice in force
@@ -115,7 +122,7 @@ class GuidanceTap:
         self.setpoint_errors = 0
         self._last_state = self.gate.state
         self._publish: Any = None
-        # (track, pose, clock at the frame), replaced whole by the pipeline thread
+        # (track, pose, the tap's clock when the frame arrived), replaced whole by the pipeline thread
         self._slot: tuple[Any, Any, float] | None = None
         self._wake = threading.Event()
         self._stop = threading.Event()
@@ -141,13 +148,18 @@ class GuidanceTap:
 
     def on_frame(self, frame: IrFrame, result: Any) -> None:  # an observers.FrameResult
         track, pose = result.track, result.pose
-        now = self._clock()
+        # the frame's age counts from its arrival at the daemon, not from now: a frame that waited in the queue, for
+        # telemetry or behind a slow pipeline carries a pose (and a target) that old, and the gate's other ages (the
+        # heartbeat's, the setpoint schedule) are on this local clock too.  Its capture time is on the autopilot's
+        # boot clock, which only TIMESYNC maps here; the camera-to-daemon leg before arrival is not counted (status
+        # capture_to_track_ms shows it, as the heartbeat's own transport is not counted either)
+        arrived = self._clock() - max(self._clock_ns() - int(result.received_ns), 0) * 1e-9
         if pose is not None and self.in_loop:  # the gate's altitude band has the planner's reference
             ref_m = reference_alt_m(pose, self.altitude_reference, self.home_alt_amsl_m)
             if ref_m is not None:
-                # stamped when its newest measured position was, not now: a pose dead-reckoned through a GNSS
-                # outage is not a fresh one, and guidance.pose_timeout_s must see the outage
-                measured = now - max(int(pose.pos_extrapolated_us), 0) * 1e-6
+                # stamped when its newest measured position was: a pose dead-reckoned through a GNSS outage is not a
+                # fresh one, and guidance.pose_timeout_s must see the outage
+                measured = arrived - max(int(pose.pos_extrapolated_us), 0) * 1e-6
                 self._pose = (measured, pose.body.p_ned_m - [0.0, 0.0, ref_m], pose.body.v_ned_mps)
         if track is not None:  # (a frame without a track, one refused, says nothing of the target)
             with self._lock:
@@ -159,15 +171,16 @@ class GuidanceTap:
             return
         if not self.advisor.due(track.time_boot_us):
             return
-        self._slot = (track, pose, now)
+        self._slot = (track, pose, arrived)
         self._wake.set()
 
     def on_status(self, data: bytes) -> None:
         pass
 
     def step(self, track: Any, pose: Any, frame_clock: float | None = None) -> bytes | None:
-        """One update from a track and its frame's pose (``frame_clock``: the tap's clock when the frame was taken,
-        from which the advice's validity counts; None: now); the payload published (None: nothing advised)."""
+        """One update from a track and its frame's pose (``frame_clock``: the tap's clock when the frame arrived at
+        the daemon, from which the advice's validity counts; None: now); the payload published (None: nothing
+        advised)."""
         ref_m = reference_alt_m(pose, self.altitude_reference, self.home_alt_amsl_m)
         if ref_m is None:  # a band above home, and the autopilot has not said where home is yet
             self.advisor.skipped["no_home"] = self.advisor.skipped.get("no_home", 0) + 1
@@ -325,13 +338,15 @@ class GuidanceTap:
             self._thread.join(timeout_s)
 
 
-def make_guidance_tap(config: OnboardConfig, clock: Any = time.monotonic) -> GuidanceTap | None:
+def make_guidance_tap(
+    config: OnboardConfig, clock: Any = time.monotonic, clock_ns: Any = time.monotonic_ns
+) -> GuidanceTap | None:
     """The tap ``config.guidance`` asks for (None when ``advise`` is off), planning with the estimator's noise
-    model and spline and the camera's focal lengths."""
+    model and spline and the camera's focal lengths; ``clock_ns``: the one frames' ``received_ns`` are on."""
     g = config.guidance
     if not g.advise:
         return None
     k = config.camera.intrinsics
     knot_s = config.estimator.sliding_config().knot_spacing_s  # the online spline's
     planner = GuidancePlanner.for_noise(g, config.estimator.noise_model(), (k.fx_px, k.fy_px), knot_s)
-    return GuidanceTap(config, GuidanceAdvisor(planner), clock)
+    return GuidanceTap(config, GuidanceAdvisor(planner), clock, clock_ns)

@@ -278,7 +278,11 @@ def make_observers(
     if config.guidance.advise:
         from onboard.app.guidance_tap import make_guidance_tap
 
-        guidance = make_guidance_tap(config) if clock is None else make_guidance_tap(config, clock)
+        guidance = (
+            make_guidance_tap(config, clock_ns=clock_ns)
+            if clock is None
+            else make_guidance_tap(config, clock, clock_ns)
+        )
         if guidance is not None:
             taps.append(guidance)
     return taps

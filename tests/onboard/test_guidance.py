@@ -322,7 +322,7 @@ def test_tap_sends_the_advice_in_force_to_the_autopilot_only_through_the_gate():
 
     now = [100.0]
     cfg = build_cfg(OnboardConfig, {"guidance": {"enabled": True}})
-    tap = make_guidance_tap(cfg, clock=lambda: now[0])
+    tap = make_guidance_tap(cfg, clock=lambda: now[0], clock_ns=lambda: 0)  # frames handled as they arrive (0 ns)
     assert tap is not None and tap.in_loop
     sent: list = []
     link = SimpleNamespace(
@@ -574,14 +574,17 @@ def test_an_unknown_vehicle_velocity_stops_the_setpoints():
     assert d.state == "stopped" and d.why.startswith("speed") and not d.v_ned_mps.any()
 
 
-def _in_loop_tap(now):
+def _in_loop_tap(now, ns=(0,)):
     from types import SimpleNamespace
 
     from onboard.app.config import OnboardConfig
     from onboard.app.guidance_tap import make_guidance_tap
     from onboard.core.schema import build as build_cfg
 
-    tap = make_guidance_tap(build_cfg(OnboardConfig, {"guidance": {"enabled": True}}), clock=lambda: now[0])
+    # frames handled as they arrive: FrameResult(0, ...) on a clock_ns that stands at 0
+    tap = make_guidance_tap(
+        build_cfg(OnboardConfig, {"guidance": {"enabled": True}}), clock=lambda: now[0], clock_ns=lambda: ns[0]
+    )
     sent: list = []
     link = SimpleNamespace(
         state="connected",
@@ -619,6 +622,35 @@ def test_a_pose_dead_reckoned_through_a_gnss_outage_is_not_fresh_for_the_gate():
     assert tap.setpoint_step(now[0], link)  # the brake: zero velocity
     assert not sent[-1].any() and tap.status()["setpoints"]["state"] == "stopped"
     assert tap.status()["setpoints"]["why"].startswith("pose_lost")
+
+
+def test_a_frame_handled_late_is_as_old_as_its_arrival_for_the_gate():
+    """The gate's pose was stamped when the pipeline handled its frame: a frame that waited 1.5 s (queue, telemetry
+    wait, a slow pipeline) counted as fresh, and 1.5 s old positions passed guidance.pose_timeout_s (1 s).  Its age
+    counts from its arrival at the daemon (received_ns, the local clock of the gate's other ages); so does the
+    validity of an advice planned on it."""
+    from onboard.app.observers import FrameResult
+
+    now, ns = [100.0], [100_000_000_000]
+    tap, link, sent = _in_loop_tap(now, ns)
+    tap.on_frame(None, FrameResult(ns[0], True, _pose(), None, None))
+    tap._advice = (now[0] + 3.0, np.array([1.0, 0.0, 0.0]), None)
+    link.autopilot_mode = GUIDED
+    assert tap.setpoint_step(now[0], link) and sent[-1][0] == 1.0
+    now[0] += 0.5
+    ns[0] += 500_000_000
+    tap.on_frame(None, FrameResult(ns[0] - 1_500_000_000, True, _pose(), None, None))  # arrived 1.5 s ago
+    assert tap.setpoint_step(now[0], link) and not sent[-1].any()  # the brake
+    assert tap.status()["setpoints"]["why"].startswith("pose_lost")
+    # an advice planned on a frame that arrived 2 s ago holds valid_for_s (3 s) from then: 1 s more
+    p = np.array([135.0, 50.0, -80.0])
+    cam = _pose().p_cam_ned_m
+    u = (p - cam) / np.linalg.norm(p - cam)
+    cov = 4.0 * np.eye(3) + (0.5 * np.linalg.norm(p - cam)) ** 2 * np.outer(u, u)
+    track = _track(5_000_000, p, (-3.0, -2.0, 0.0), cov)
+    tap.on_frame(None, FrameResult(ns[0] - 2_000_000_000, True, _pose(), track, None))
+    assert tap.plan_pending() is not None and tap._advice is not None
+    assert tap._advice[0] == pytest.approx(now[0] - 2.0 + 3.0)
 
 
 def test_a_camera_gap_stops_the_setpoints_saying_so_and_a_pose_stamp_that_is_not_a_number_is_not_recent():
