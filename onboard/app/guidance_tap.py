@@ -40,6 +40,12 @@ def _origin_alt_m(pose: Any) -> float:
     return float(origin.alt_m) if origin is not None else 0.0
 
 
+def _target_of(track: Any) -> Any:
+    """What an advice is planned for: the track's target and the estimate it has of it, (track_id,
+    estimate_epoch); :data:`_LOST` without a position."""
+    return (track.track_id, int(getattr(track, "estimate_epoch", 0))) if track.has_position else _LOST
+
+
 def reference_alt_m(pose: Any, altitude_reference: str, home_alt_amsl_m: float | None) -> float | None:
     """The height of a pose's NED origin above the guidance band's reference (``guidance.altitude_reference``):
     above home (the origin's AMSL altitude minus home's; None while the autopilot has not said where home is),
@@ -113,10 +119,13 @@ class GuidanceTap:
         self._clock_ns = clock_ns  # the clock FrameResult.received_ns is on (the daemon's frame receipt)
         self.gate = SetpointGate(config.guidance)
         self._pose: tuple[float, Any, Any] | None = None  # (clock when it came, vehicle p NED, v NED)
-        # (clock until which it holds, v NED, the track_id it was planned for) of the advice in force
-        self._advice: tuple[float, Any, int | None] | None = None
-        # the newest frame's target: its track_id while it has a position, _LOST without (_UNSEEN before any frame)
+        # (clock until which it holds, v NED, the target it was planned for) of the advice in force
+        self._advice: tuple[float, Any, Any] | None = None
+        # the newest frame's target: (track_id, estimate_epoch) while it has a position, _LOST without (_UNSEEN before
+        # any frame); an advice holds only for the estimate it was planned on
         self._target: Any = _UNSEEN
+        self.advice_ends: dict[str, int] = {}  # advices in force ended early, by reason (status setpoints.advice_ends)
+        self._ended = ""  # why the last advice in force ended early (the gate's why says it while none is in force)
         self._next_setpoint_s = -math.inf
         self.setpoints_sent = 0
         self.setpoint_errors = 0
@@ -163,11 +172,22 @@ class GuidanceTap:
                 self._pose = (measured, pose.body.p_ned_m - [0.0, 0.0, ref_m], pose.body.v_ned_mps)
         if track is not None:  # (a frame without a track, one refused, says nothing of the target)
             with self._lock:
-                self._target = track.track_id if track.has_position else _LOST
+                self._target = _target_of(track)
                 advice = self._advice
                 if advice is not None and advice[2] != self._target:
-                    self._advice = None  # the target it was planned for is lost or another one: no manoeuvre for it
+                    # the target it was planned for is lost, another one, or its estimate started again (a new
+                    # estimate_epoch: a reset holds nothing from before): no manoeuvre for it
+                    if self._target is _LOST:
+                        self._end_advice("target_lost")
+                    elif isinstance(advice[2], tuple) and advice[2][0] == self._target[0]:
+                        self._end_advice("estimate_reset")
+                    else:
+                        self._end_advice("target_changed")
         if track is None or pose is None or not track.has_position:
+            return
+        if track.state == "coasting":
+            # the target not seen in this frame, its position the estimate carried on: the advice in force runs out
+            # (valid_for_s from the last frame that saw it) instead of being renewed for a target nobody sees
             return
         if not self.advisor.due(track.time_boot_us):
             return
@@ -203,12 +223,15 @@ class GuidanceTap:
             self.last_advice = advice
         if not advice.recommended:  # a newer answer (observable, no manoeuvre helps): the one in force ends
             with self._lock:
-                self._advice = None
+                if self._advice is not None:
+                    self._end_advice(f"answer_{advice.status}")
             return None
         start = self._clock() if frame_clock is None else frame_clock
         with self._lock:  # planned on an older frame: not if the target was lost or changed since
-            if self._target is _UNSEEN or track.track_id == self._target:
-                self._advice = (start + advice.valid_until_s - advice.t_s, advice.v_ned_mps, track.track_id)
+            target = _target_of(track)
+            if self._target is _UNSEEN or target == self._target:
+                self._advice = (start + advice.valid_until_s - advice.t_s, advice.v_ned_mps, target)
+                self._ended = ""
         payload = json.dumps(advice_to_json(advice, self.vehicle, track.time_boot_us, self.in_loop)).encode()
         if self._publish is not None:
             try:
@@ -256,6 +279,7 @@ class GuidanceTap:
             mode=None if link is None else link.autopilot_mode,
             pose=self._pose,
             advice=None if advice is None else (advice[0], advice[1]),
+            ended=self._ended,
             heartbeat_age_s=math.inf if link is None else link.heartbeat_age_s(),
         )
         if decision.state != self._last_state:
@@ -302,6 +326,16 @@ class GuidanceTap:
                 self.advisor.skipped["error"] = self.advisor.skipped.get("error", 0) + 1
                 self._log_failure_once("error", "update", exc)
 
+    def _end_advice(self, reason: str) -> None:
+        """End the advice in force early (the caller holds the lock): counted by ``reason``, the first of each
+        logged, and said by the gate's why until the next advice."""
+        self._advice = None
+        self._ended = reason
+        self.advice_ends[reason] = self.advice_ends.get(reason, 0) + 1
+        if f"ended:{reason}" not in self._logged:
+            self._logged.add(f"ended:{reason}")
+            log.info("guidance: the advice in force ended (%s)", reason)
+
     def _log_failure_once(self, key: str, what: str, exc: Exception) -> None:
         """Log the first failure of ``key`` ("guidance: <what> failed: ..."); the status counts every one, and
         a failure that repeats each frame would flood the log."""
@@ -328,6 +362,7 @@ class GuidanceTap:
                 "sent": self.setpoints_sent,
                 "errors": self.setpoint_errors,
                 "stops": dict(self.gate.stops),
+                "advice_ends": dict(self.advice_ends),
             },
         }
 

@@ -785,10 +785,12 @@ class SetpointGate:
         pose: tuple[float, np.ndarray, np.ndarray] | None,
         advice: tuple[float, np.ndarray] | None,
         heartbeat_age_s: float = 0.0,
+        ended: str = "",
     ) -> SetpointDecision:
         """``pose``: (when it came, s on ``now_s``'s clock; position (3,) NED m; velocity (3,) NED m/s) or None;
         ``advice``: (valid until, s on the same clock; velocity (3,) NED m/s) or None; ``heartbeat_age_s``: how
-        long ago the autopilot's newest heartbeat came (a NaN: never)."""
+        long ago the autopilot's newest heartbeat came (a NaN: never); ``ended``: why the last advice was ended
+        early when none is in force (the target lost, ...), said in ``why``."""
         if not self.config.enabled:
             return SetpointDecision(False, None, "off", self.why)
         # the link's own timeout (mavlink.heartbeat_timeout_s) is for the telemetry; a vehicle being commanded may
@@ -845,14 +847,16 @@ class SetpointGate:
         if limit:
             return self._stop(limit, brake)
         if advice is None or not now_s <= advice[0]:  # (an expiry that is not a number is no advice)
+            none = f"no advice in force ({ended})" if advice is None and ended else "no advice in force"
             if self.config.accept_autopilot == MAV_AUTOPILOT_PX4:
-                self.state, self.why = "holding", "no advice in force: zero velocity, the stream PX4's OFFBOARD needs"
+                self.state, self.why = "holding", f"{none}: zero velocity, the stream PX4's OFFBOARD needs"
                 return SetpointDecision(True, np.zeros(3), self.state, self.why)
             if self.state == "sending":
                 self._brake_until_s = now_s + BRAKE_S
-            self.state, self.why = "waiting", "no advice in force"
+            self.state, self.why = "waiting", none
             if now_s < self._brake_until_s:
-                return SetpointDecision(True, np.zeros(3), self.state, "no advice in force: braking")
+                self.why = f"{none}: braking"
+                return SetpointDecision(True, np.zeros(3), self.state, self.why)
             return SetpointDecision(False, None, self.state, self.why)
         v = np.asarray(advice[1], dtype=float)
         if not self.config.speed_ok(v):  # the planner keeps the limits; the gate checks again, never trusts

@@ -724,6 +724,46 @@ def test_a_newer_answer_or_another_target_ends_the_advice_in_force():
     assert tap.step(sharp, _pose(), now[0]) is None and tap._advice is None
 
 
+def test_an_advice_ends_with_its_estimate_and_is_not_renewed_for_a_target_nobody_sees():
+    """The advice in force was tied to the track_id alone: a new estimate_epoch on the same track (the estimate
+    started again: a pose discontinuity, an autopilot reboot) kept the old manoeuvre going, and a coasting track (the
+    target not seen, its position carried on) was planned on and renewed it.  The estimate's restart ends it, at
+    once, with the gate's brake and a reason the status shows; a coasting frame plans nothing, so the advice runs
+    out valid_for_s after the last frame that saw the target."""
+    from onboard.app.observers import FrameResult
+
+    now = [100.0]
+    tap, link, sent = _in_loop_tap(now)
+    p = np.array([135.0, 50.0, -80.0])
+    cam = _pose().p_cam_ned_m
+    u = (p - cam) / np.linalg.norm(p - cam)
+    cov = 4.0 * np.eye(3) + (0.5 * np.linalg.norm(p - cam)) ** 2 * np.outer(u, u)
+    track = _track(5_000_000, p, (-3.0, -2.0, 0.0), cov, track_id=1, estimate_epoch=2)
+    tap.on_frame(None, FrameResult(0, True, _pose(), track, None))
+    assert tap.plan_pending() is not None and tap._advice is not None
+    link.autopilot_mode = GUIDED
+    assert tap.setpoint_step(now[0], link) and sent[-1].any()
+    now[0] += 0.5
+    reset = dataclasses.replace(track, time_boot_us=5_500_000, estimate_epoch=3)  # same target, a new estimate
+    tap.on_frame(None, FrameResult(0, True, _pose(), reset, None))
+    assert tap._advice is None
+    assert tap.setpoint_step(now[0], link) and not sent[-1].any()  # the brake
+    setpoints = tap.status()["setpoints"]
+    assert setpoints["why"] == "no advice in force (estimate_reset): braking" and setpoints["state"] == "waiting"
+    assert setpoints["advice_ends"] == {"estimate_reset": 1}
+
+    # planned again on the new estimate, then the target coasts: nothing is planned on what nobody sees
+    tap.advisor._next_us = 0
+    fresh = dataclasses.replace(reset, time_boot_us=6_000_000)
+    tap.on_frame(None, FrameResult(0, True, _pose(), fresh, None))
+    assert tap.plan_pending() is not None and tap._advice is not None
+    until = tap._advice[0]
+    coasting = dataclasses.replace(fresh, time_boot_us=8_000_000, state="coasting")
+    now[0] += 2.0
+    tap.on_frame(None, FrameResult(0, True, _pose(), coasting, None))
+    assert tap.plan_pending() is None and tap._advice[0] == until  # not renewed: it runs out at its own time
+
+
 def test_guidance_config_refuses_an_advice_longer_than_its_plan_and_a_loop_without_advice():
     with pytest.raises(Exception, match="valid_for_s"):
         build(GuidanceConfig, {"valid_for_s": 10.0, "horizon_s": 6.0})
