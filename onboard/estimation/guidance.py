@@ -311,8 +311,9 @@ class Advice:
 
     ``status``: ``advise`` (``v_ned_mps`` recommended until ``valid_until_s``), ``observable`` (the range
     sigma is already below the quiet threshold), ``no_gain`` (no candidate beats holding by
-    ``min_gain_ratio``), ``outside_limits`` (the observer itself is outside its limits: nothing is advised
-    that would have to leave them), ``no_feasible`` (every candidate breaks a limit), ``unavailable``
+    ``min_gain_ratio``), ``outside_limits`` (the observer itself is faster than its speed or climb-rate
+    limits or outside its altitude band: nothing is advised that would have to leave them; slower than
+    ``min_speed_mps`` is not outside: every manoeuvre's setpoint is at least that fast), ``no_feasible`` (every candidate breaks a limit), ``unavailable``
     (the prediction failed: see ``why``).  ``sigma_range_now_m`` is the posterior's range sigma now;
     ``sigma_range_without_m`` / ``sigma_range_with_m`` the predicted ones at ``t_s + horizon_s`` holding
     the current velocity / flying the advice (equal when nothing is advised); ``range_m`` the predicted
@@ -424,7 +425,12 @@ class GuidancePlanner:
             a = az + sign * 0.5 * math.pi
             out.append((f"cross_{side}", np.array([s * math.cos(a), s * math.sin(a), 0.0])))
         if c.max_climb_rate_mps > 0:
-            base = np.array([vh[0], vh[1], 0.0]) if speed >= c.min_speed_mps else np.array([s, 0.0, 0.0])
+            if speed >= c.min_speed_mps:
+                base = np.array([vh[0], vh[1], 0.0])
+            elif speed > _V_EPS_MPS:  # slower than the limit: on its heading at the manoeuvres' speed
+                base = np.array([vh[0] * s / speed, vh[1] * s / speed, 0.0])
+            else:
+                base = np.array([s, 0.0, 0.0])
             out.append(("climb", base + np.array([0.0, 0.0, -c.max_climb_rate_mps])))
             out.append(("descend", base + np.array([0.0, 0.0, c.max_climb_rate_mps])))
         return out
@@ -518,7 +524,15 @@ class GuidancePlanner:
             return nothing("unavailable", math.nan, math.nan, "target at the camera")
         if sigma_now < c.quiet_below_sigma_range_ratio * range_m:
             return nothing("observable", sigma_now, sigma_now)
-        if not (c.speed_ok(observer.v_ned_mps, slack_mps=0.5) and c.altitude_ok(observer.p_ned_m)):
+        # faster than the limits, not slower: every manoeuvre's setpoint is at least min_speed_mps, so a slow observer
+        # (hovering after the gate's zero-velocity brake, or a multirotor starting) is brought up to it; refusing it
+        # left a vehicle with min_speed_mps over 0.5 m/s unadvised for good after its first brake
+        v0 = observer.v_ned_mps
+        too_fast = not (
+            math.hypot(float(v0[0]), float(v0[1])) <= c.max_speed_mps + 0.5
+            and abs(float(v0[2])) <= c.max_climb_rate_mps + 0.5
+        )
+        if too_fast or not c.altitude_ok(observer.p_ned_m):
             return nothing("outside_limits", math.nan, math.nan, "the observer is outside its speed or altitude limits")
         target_at_t0 = TargetPosterior(t0, p_t0, target.v_ned_mps, target.cov_pv)
         info_pv = np.linalg.inv(target.cov_pv)

@@ -764,6 +764,25 @@ def test_an_advice_ends_with_its_estimate_and_is_not_renewed_for_a_target_nobody
     assert tap.plan_pending() is None and tap._advice[0] == until  # not renewed: it runs out at its own time
 
 
+def test_an_observer_slower_than_min_speed_is_advised_up_to_it_not_left_outside_limits():
+    """With min_speed_mps 3 an observer at 0 or 2 m/s (hovering after the gate's zero-velocity brake) was
+    'outside_limits' for good: no advice ever again.  Every manoeuvre's setpoint is at least min_speed_mps, so a slow
+    observer is advised up to it; and its climb keeps its heading instead of turning north."""
+    cfg = build(GuidanceConfig, {"min_speed_mps": 3.0})
+    slow_planner = GuidancePlanner.for_noise(cfg, RTK, F_PX)
+    for v in ([0.0, 0.0, 0.0], [0.0, 2.0, 0.0]):
+        obs = ObserverState(0.0, np.array([0.0, 40.0, -60.0]), np.array(v))
+        advice = slow_planner.advise(obs, unobservable(obs, [135.0, 50.0, -80.0], (-3.0, -2.0, 0.0)))
+        assert advice.status == "advise" and np.hypot(*advice.v_ned_mps[:2]) >= 3.0 - SLACK_MPS
+    obs = ObserverState(0.0, np.array([0.0, 40.0, -60.0]), np.array([0.0, 2.0, 0.0]))
+    climb = dict(slow_planner.candidates(obs, unobservable(obs, [135.0, 50.0, -80.0], (-3.0, -2.0, 0.0))))["climb"]
+    np.testing.assert_allclose(climb, [0.0, 6.0, -2.0], atol=ATOL_M)  # east, at the manoeuvres' speed
+    fast = ObserverState(0.0, np.array([0.0, 40.0, -60.0]), np.array([0.0, 13.0, 0.0]))  # over 12 + 0.5: outside
+    assert slow_planner.advise(fast, unobservable(fast, [135.0, 50.0, -80.0], (-3.0, -2.0, 0.0))).status == (
+        "outside_limits"
+    )
+
+
 def test_guidance_config_refuses_an_advice_longer_than_its_plan_and_a_loop_without_advice():
     with pytest.raises(Exception, match="valid_for_s"):
         build(GuidanceConfig, {"valid_for_s": 10.0, "horizon_s": 6.0})
