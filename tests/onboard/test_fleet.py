@@ -495,3 +495,66 @@ def test_two_vehicles_centimetres_apart_are_one_vehicle_and_their_covariance_hol
         e = est.p_ned_m - tgt.p_ned_m(est.t_s)
         assert not est.observable
         assert float(e @ np.linalg.solve(est.cov_p_ned_m2, e)) < chi2.ppf(0.997, 3)
+
+
+# --------------------------------------------------------------------------- the first fused points
+
+# scenario F1's geometry (config/scenarios/F1.yaml): two observers 290 m apart, straight and level, the target ~625 m
+# ahead; RTK-class errors (0.3 px and 0.05 deg of white attitude noise, a 0.1 deg constant bias per axis)
+F1_UAV1 = ((0.0, -145.0, -100.0), (3.0, 0.0, 0.0))
+F1_UAV2 = ((0.0, 145.0, -100.0), (3.0, 0.0, 0.0))
+F1_TARGET = SynthTarget((592.0, -20.0, -120.0), (4.0, 1.5, 0.0))
+F1_WHITE_RAD = math.hypot(0.3 / 764.7, math.radians(0.05))
+RTK_BIAS_RAD = math.radians(0.1)
+
+
+def _first_fused(noise, uav2_bias_rad, seed: int, frames: int = 3) -> list:
+    """The first fused points of a new F1 target, frame by frame as the fusion publishes them: (estimate, its
+    position's NEES against the truth)."""
+    rng = np.random.default_rng(seed)
+    uav1 = SynthVehicle("uav1", *F1_UAV1, attitude_error_rad=tuple(rng.normal(0.0, RTK_BIAS_RAD, 3)))
+    uav2_error = np.asarray(uav2_bias_rad) + rng.normal(0.0, RTK_BIAS_RAD, 3)
+    uav2 = SynthVehicle("uav2", *F1_UAV2, attitude_error_rad=tuple(uav2_error))
+    tracker = FleetTracker(FleetConfig(), noise)
+    out = []
+    for k in range(frames):
+        t = k / 30
+        for v in (uav1, uav2):
+            tracker.add(ray_of(measure(v, F1_TARGET, t, rng, F1_WHITE_RAD, RTK_BIAS_RAD, 0.02), v.name, t))
+        for tid in tracker.targets:
+            if tracker.due(tid) and (est := tracker.solve(tid)) is not None:
+                e = est.p_ned_m - F1_TARGET.p_ned_m(est.t_s)
+                out.append((est, float(e @ np.linalg.solve(est.cov_p_ned_m2, e))))
+    return out
+
+
+RTK_PRIOR = NoiseModel(attitude_bias_sigma_rad=RTK_BIAS_RAD, camera_position_white_sigma_m=0.02)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_the_first_fused_point_from_one_ray_per_vehicle_is_observable_and_honest_with_rtk_attitude(seed):
+    (est, nees), *_ = _first_fused(RTK_PRIOR, (0.0, 0.0, 0.0), seed, frames=1)
+    assert [c.rays for c in est.contributions] == [1, 1]
+    assert est.solution.dof == pytest.approx(1.0, abs=0.01)  # the two rays' gap: the residual test has a row
+    assert est.observable  # at once: F1's crossing ranges it to ~0.6 % from one frame each
+    assert nees < chi2.ppf(0.999, 3)
+
+
+@pytest.mark.parametrize(
+    "direction",
+    [(0.0, 0.0, 1.0), (0.62, -0.78, 0.13), (-0.36, -0.1, 0.93)],
+    ids=["yaw", "mostly-across", "mostly-yaw"],
+)
+def test_the_first_fused_points_of_a_vehicle_off_by_1_deg_carry_its_configured_prior(direction):
+    """uav2's attitude off by 1 deg, its prior configured 1 deg (``--vehicle-noise uav2:attitude_bias_deg=1``): the
+    first point's covariance holds the bias nuisance's prior as every later one's does (the solve's attitude columns
+    are there from one ray per vehicle), so none of the first points is called observable (1 deg at 625 m over a
+    290 m baseline is ~5 % of range) and each holds the truth."""
+    d = np.asarray(direction) / np.linalg.norm(direction)
+    noise = VehicleNoise(RTK_PRIOR, {"uav2": dataclasses.replace(RTK_PRIOR, attitude_bias_sigma_rad=math.radians(1.0))})
+    for seed in range(3):
+        first = _first_fused(noise, math.radians(1.0) * d, seed)
+        assert first, "the rays paired"
+        for est, nees in first:
+            assert not est.observable
+            assert nees < chi2.ppf(0.999, 3)
