@@ -30,7 +30,9 @@ position: of the steps from one second after the first step both vehicles track 
 kill), those that are the newest step of a fleet track with both vehicles.  Latency: for each such step, the
 first fleet track containing both vehicles' frames of it or later, minus the later arrival of the two
 frames here (the frames' wall arrival on this machine: the simulator publishes at capture time).
-Each vehicle alone: its own track's verdict and error over the same steps.
+Each vehicle alone: its own track's verdict and error over the same steps.  The first second, left out of the
+shares, is counted apart: its two-vehicle fleet tracks (the target's first fused points), how many are observable,
+and how many of those are beyond 3 sigma.
 
 Numbers, no assertions; the issue's goals are printed beside them.
 """
@@ -442,6 +444,10 @@ def score_flight(rec: FlightRecord) -> dict:
         beyond = float(np.linalg.norm(e)) > 3.0 * math.sqrt(max(float(np.trace(cov)), 0.0))
         fleet_rows.append((t_rx, k, contrib, bool(obj.get("observable")), float(np.linalg.norm(e)) / rng, beyond))
     both_rows = [r for r in fleet_rows if len(r[2]) == len(VEHICLES) and window[r[1]]]
+    # the first second, left out of the shares, holds the target's first fused points (the first from one line of
+    # sight per vehicle, the least redundancy a fused point has): counted on their own, so that a confident wrong
+    # point there is not invisible
+    first_rows = [r for r in fleet_rows if len(r[2]) == len(VEHICLES) and t_step[r[1]] < t_from]
     steps_with = {r[1] for r in both_rows}
     scored_steps = np.flatnonzero(window & both)
     out: dict = {
@@ -453,6 +459,9 @@ def score_flight(rec: FlightRecord) -> dict:
         "fleet_position_share": len(steps_with & set(np.flatnonzero(window))) / max(1, int(window.sum())),
         "fleet_tracks": len(fleet_rows),
         "fleet_tracks_both": len(both_rows),
+        "first_second_tracks": len(first_rows),
+        "first_second_observable": sum(1 for r in first_rows if r[3]),
+        "first_second_confident_wrong": sum(1 for r in first_rows if r[3] and r[5]),
     }
     out["navigation_floor_err_ratio"] = navigation_floor(truth, scored_steps[::10])
     if both_rows:
@@ -592,6 +601,8 @@ def format_score(s: dict, seed: int) -> str:
         f"  fleet: position on {_pct(s['fleet_position_share'])} of steps, observable {_pct(s.get('observable_share'))},"
         f" median error {_pct(s.get('median_err_ratio'))} of range (p90 {_pct(s.get('p90_err_ratio'))}),"
         f" beyond 3 sigma {_pct(s.get('beyond_3sigma_share'))} ({s['fleet_tracks_both']} two-vehicle tracks)",
+        f"  first second (left out above): {s['first_second_tracks']} two-vehicle tracks, "
+        f"{s['first_second_observable']} observable, {s['first_second_confident_wrong']} observable and beyond 3 sigma",
         f"  the navigation floor: perfect pixels with the injected navigation errors triangulate to a median "
         f"{_pct(s.get('navigation_floor_err_ratio'))} of range",
     ]

@@ -9,7 +9,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from bench.fleet_flight import VEHICLES, FlightRecord, navigation_floor, score_flight, triangulate_ned_m
+from bench.fleet_flight import (
+    VEHICLES,
+    FlightRecord,
+    format_score,
+    navigation_floor,
+    score_flight,
+    triangulate_ned_m,
+)
 from onboard.core.frames import GeodeticOrigin, geodetic_from_ned
 
 ORIGIN = GeodeticOrigin(32.0, 118.8, 0.0)
@@ -128,6 +135,25 @@ def test_an_offset_beyond_three_sigma_is_counted_and_scaled_by_range():
     assert s["beyond_3sigma_share"] == 1.0
     rng = _truth("uav1")["range_m"][int(RATE_HZ) :]
     assert s["median_err_ratio"] == pytest.approx(float(np.median(6.0 / rng)), rel=1e-3)
+
+
+def test_the_first_second_left_out_of_the_shares_is_scored_apart():
+    """The first fused points of the target (the first second, which the shares leave out) are counted on their own:
+    observable ones beyond 3 sigma there were invisible in every share."""
+    first = int(RATE_HZ)  # steps 0-29: before one second after the first step both track
+    s = score_flight(_record())
+    assert (s["first_second_tracks"], s["first_second_observable"], s["first_second_confident_wrong"]) == (
+        first,
+        first,
+        0,
+    )
+    rec = _record()
+    for _, obj in rec.fleet[:3]:  # the first three points 6 m off at a 1 m sigma
+        obj["ned_m"] = list(np.asarray(obj["ned_m"]) + (0.0, 0.0, 6.0))
+    s = score_flight(rec)
+    assert s["first_second_confident_wrong"] == 3
+    assert s["beyond_3sigma_share"] == 0.0  # the shares do not see them
+    assert "first second" in format_score(s, 0) and "3 observable and beyond 3 sigma" in format_score(s, 0)
 
 
 def test_the_navigation_floor_grows_with_an_attitude_bias():
