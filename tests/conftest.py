@@ -42,10 +42,11 @@ def pytest_collection_modifyitems(items):
             item.add_marker(pytest.mark.xdist_group(PROCESS_GROUP))
 
 
-#: the shell's IRTRACK_* variables the suite keeps (its own switch); every other one is a config override
-#: (IRTRACK_<SECTION>_<FIELD>, IRTRACK_HEALTH_FILE: the container images set some) that would change what the tests
-#: and the daemons they start run on, so a suite run inside the simulator's image failed where a clean shell passed
-KEPT_ENV = frozenset({"IRTRACK_NO_SKIPS"})
+#: the shell's IRTRACK_* variables the suite keeps (its own switches: no skips, the golden bytes' rewrite, the fuzz
+#: budget, each read after this runs); every other one is a config override (IRTRACK_<SECTION>_<FIELD>,
+#: IRTRACK_HEALTH_FILE: the container images set some) that would change what the tests and the daemons they start
+#: run on, so a suite run inside the simulator's image failed where a clean shell passed
+KEPT_ENV = frozenset({"IRTRACK_NO_SKIPS", "IRTRACK_WRITE_GOLDEN", "IRTRACK_FUZZ_EXAMPLES"})
 
 
 def pytest_configure(config):
