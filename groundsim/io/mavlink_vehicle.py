@@ -11,8 +11,11 @@ for stamps, so lockstep and faster-than-real-time runs stay consistent):
 ===========================================  ========  =============================================
 message                                      default   content
 ===========================================  ========  =============================================
-HEARTBEAT (#0)                               1 Hz      MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_GENERIC,
-                                                       armed + guided + stabilised, MAV_STATE_ACTIVE
+HEARTBEAT (#0)                               1 Hz      MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_GENERIC, base_mode
+                                                       MAV_MODE_GUIDED_ARMED (armed, guided, stabilised, manual
+                                                       input), MAV_STATE_ACTIVE; ``guided``: ARDUPILOTMEGA,
+                                                       ArduCopter's LOITER/GUIDED custom_mode, base_mode as
+                                                       ArduCopter's (the same | CUSTOM_MODE_ENABLED)
 SYSTEM_TIME (#2)                             1 Hz      time_unix_usec = unix time at boot + boot time
                                                        (``unix_time_at_boot_us``: ``groundsim run`` passes
                                                        the simulated UTC's; None: the wall clock's)
@@ -238,11 +241,11 @@ _ACK_COUNTER = {
 
 _LOG_EVERY_S = 10.0  # a repeated network complaint is logged at most this often per reason
 
-_BASE_MODE = (
-    mavlink2.MAV_MODE_FLAG_SAFETY_ARMED
-    | mavlink2.MAV_MODE_FLAG_STABILIZE_ENABLED
-    | mavlink2.MAV_MODE_FLAG_GUIDED_ENABLED
-)
+# armed, stabilised, guided, pilot's sticks live: common.xml's MAV_MODE_GUIDED_ARMED (216), the whole mode of the
+# generic autopilot, which has no custom mode; ArduCopter sets MANUAL_INPUT_ENABLED in every mode (stick mixing) and
+# GUIDED_ENABLED in its position-controlled ones (LOITER, GUIDED), then CUSTOM_MODE_ENABLED beside its custom_mode
+_BASE_MODE = mavlink2.MAV_MODE_GUIDED_ARMED
+ARDUCOPTER_BASE_MODE = _BASE_MODE | mavlink2.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
 
 
 #: ArduCopter's GUIDED custom_mode: the mode the simulated vehicle reports with ``guided`` (what the daemon's
@@ -663,7 +666,7 @@ class MavlinkVehicle:
                     Heartbeat(
                         mavlink2.MAV_TYPE_QUADROTOR,
                         mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA,
-                        _BASE_MODE | mavlink2.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
+                        ARDUCOPTER_BASE_MODE,
                         mode,
                     ).to_message()
                 )

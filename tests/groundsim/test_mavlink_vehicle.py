@@ -13,6 +13,8 @@ import numpy as np
 import pytest
 
 from groundsim.io.mavlink_vehicle import (
+    ARDUCOPTER_GUIDED_MODE,
+    ARDUCOPTER_LOITER_MODE,
     MavlinkConfigError,
     MavlinkLinkError,
     MavlinkVehicle,
@@ -167,6 +169,37 @@ def test_heartbeat_identifies_an_active_quadrotor_autopilot_in_mavlink2(link):
     assert hb.system_status == 4  # MAV_STATE_ACTIVE
     assert hb.base_mode & 128  # armed
     assert hb.get_msgbuf()[0] == 0xFD  # MAVLink 2 magic
+
+
+@pytest.mark.parametrize(
+    "guided, autopilot, base_mode",
+    [
+        # common.xml MAV_MODE_GUIDED_ARMED: armed, manual input, stabilised, guided (the generic autopilot's whole mode)
+        (False, mavlink2.MAV_AUTOPILOT_GENERIC, 216),
+        # ArduCopter (GCS_MAVLINK_Copter::base_mode): MANUAL_INPUT_ENABLED in every mode, GUIDED_ENABLED in LOITER and
+        # GUIDED (position control), CUSTOM_MODE_ENABLED beside its custom_mode
+        (True, mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA, 216 | 1),
+    ],
+)
+def test_heartbeat_base_mode_is_the_imitated_autopilots(guided, autopilot, base_mode):
+    v, got = _captured_vehicle(guided=guided)
+    try:
+        v.poll(0)
+        v._companion_heard = True  # the hand-over: LOITER once more, then GUIDED
+        for t_us in (1_000_000, 2_000_000):
+            v.poll(t_us)
+    finally:
+        v.close()
+    hbs = _of(got, "HEARTBEAT")
+    assert len(hbs) == 3
+    assert {(hb.autopilot, hb.base_mode) for hb in hbs} == {(autopilot, base_mode)}
+    assert base_mode & mavlink2.MAV_MODE_FLAG_MANUAL_INPUT_ENABLED
+    if guided:  # the same base_mode in LOITER and in GUIDED, as ArduCopter's
+        assert [hb.custom_mode for hb in hbs] == [
+            ARDUCOPTER_LOITER_MODE,
+            ARDUCOPTER_LOITER_MODE,
+            ARDUCOPTER_GUIDED_MODE,
+        ]
 
 
 @pytest.mark.integration
