@@ -27,6 +27,13 @@ GLOBAL_POSITION_INT (#33)                    25 Hz     lat, lon degE7; alt mm AM
                                                        (the state's ``alt_rel_m``: above HOME_POSITION);
                                                        vx, vy, vz cm/s NED (int16, saturated);
                                                        hdg cdeg 0..35999 (UINT16_MAX if unknown)
+LOCAL_POSITION_NED (#32)                     25 Hz     #33's position in the local frame whose origin is
+                                                       HOME_POSITION (as an autopilot's EKF origin where it
+                                                       booted and armed): x, y m north and east on the plane
+                                                       tangent at home, z m = -relative_alt (the autopilots'
+                                                       height above their origin, no curvature drop); vx, vy,
+                                                       vz m/s = #33's velocity unrounded; #33's rate (ArduPilot's
+                                                       POSITION group) and set alike (``pos_rate_hz``)
 GIMBAL_DEVICE_ATTITUDE_STATUS (#285)         10 Hz     only when ``gimballed``: q = gimbal attitude
                                                        (w, x, y, z) in the earth frame (``earth``:
                                                        flag YAW_IN_EARTH_FRAME, delta_yaw = vehicle
@@ -41,7 +48,7 @@ EXTENDED_SYS_STATE (#245)                    1 Hz      landed_state IN_AIR
 GPS_RAW_INT (#24)                            5 Hz      3D fix (RTK fixed for an RTK navigation case), 14
                                                        satellites, the #33 position, h_acc / v_acc of the
                                                        case (``gnss_accuracy``); inside ``gnss_outage_us``
-                                                       no fix, 0 satellites, accuracies 0 = unknown (no #33);
+                                                       no fix, 0 satellites, accuracies 0 = unknown (no #33, #32);
                                                        alt_ellipsoid = alt + :data:`GEOID_UNDULATION_M`
 ATTITUDE (#30)                               10 Hz     roll, pitch, yaw of ``q_ned_from_body``, rates
 BATTERY_STATUS (#147)                        1 Hz      4 cells (others UINT16_MAX), current, mAh used
@@ -62,7 +69,7 @@ health, home, GPS and battery with no request DENIED (tested).
 
 Navigation errors: ``update_state(..., nav_error=sample)`` reports the state with a
 :class:`groundsim.world.nav_errors.NavErrorSample` applied (attitude error on #31 and on #285's gimbal
-attitude, position offset/drift/white noise on #33's lat/lon/alt, drift rate on its velocity);
+attitude, position offset/drift/white noise on #33's lat/lon/alt and #32's x/y/z, drift rate on their velocity);
 ``groundsim.app.run`` passes the run's :class:`~groundsim.world.nav_errors.NavErrorModel` sample of each tick.
 
 Rates: SET_MESSAGE_INTERVAL of any interval > 0 is ACCEPTED and stored (MESSAGE_INTERVAL reports it back), but a
@@ -72,7 +79,7 @@ delivered at 120 Hz, and 100 Hz comes on that tick grid (8.3 and 16.7 ms steps, 
 ArduPilot does the same (it caps a stream at its scheduler's rate and still ACCEPTS), hence no DENIED here; the
 daemon measures what it gets (status ``link.streams``, warning ``stream_rate_low``).
 
-Data messages (#31, #33, #285) carry the *state's* ``time_boot_ms`` (when the sample is true)
+Data messages (#31, #33, #32, #285) carry the *state's* ``time_boot_ms`` (when the sample is true)
 and are not repeated for an unchanged state: a stream is due by its interval but waits for a
 new :meth:`MavlinkVehicle.update_state` sample.  HEARTBEAT and SYSTEM_TIME carry poll time.
 At most one message per stream per :meth:`~MavlinkVehicle.poll`: poll at least as fast as the
@@ -129,8 +136,10 @@ import numpy as np
 from onboard.core.errors import ConfigError, InputError, IrtrackError
 from onboard.core.frames import (
     FrameError,
+    GeodeticOrigin,
     check_unit_quat,
     euler_from_quat,
+    ned_from_geodetic,
     quat_conjugate,
     quat_from_euler,
     quat_multiply,
@@ -176,8 +185,16 @@ MSG_HEARTBEAT = mavlink2.MAVLINK_MSG_ID_HEARTBEAT  # 0
 MSG_SYSTEM_TIME = mavlink2.MAVLINK_MSG_ID_SYSTEM_TIME  # 2
 MSG_ATTITUDE_QUATERNION = mavlink2.MAVLINK_MSG_ID_ATTITUDE_QUATERNION  # 31
 MSG_GLOBAL_POSITION_INT = mavlink2.MAVLINK_MSG_ID_GLOBAL_POSITION_INT  # 33
+MSG_LOCAL_POSITION_NED = mavlink2.MAVLINK_MSG_ID_LOCAL_POSITION_NED  # 32
 MSG_GIMBAL_DEVICE_ATTITUDE_STATUS = mavlink2.MAVLINK_MSG_ID_GIMBAL_DEVICE_ATTITUDE_STATUS  # 285
-_DATA_STREAMS = (MSG_ATTITUDE_QUATERNION, MSG_GLOBAL_POSITION_INT, MSG_GIMBAL_DEVICE_ATTITUDE_STATUS)
+_DATA_STREAMS = (
+    MSG_ATTITUDE_QUATERNION,
+    MSG_GLOBAL_POSITION_INT,
+    MSG_LOCAL_POSITION_NED,
+    MSG_GIMBAL_DEVICE_ATTITUDE_STATUS,
+)
+#: the position streams, withheld without a GNSS fix (the simulated vehicle then has no position estimate)
+_POSITION_STREAMS = (MSG_GLOBAL_POSITION_INT, MSG_LOCAL_POSITION_NED)
 # what a ground station reads of a whole vehicle: streams at the usual rates, or on request
 MSG_SYS_STATUS = mavlink2.MAVLINK_MSG_ID_SYS_STATUS  # 1
 MSG_GPS_RAW_INT = mavlink2.MAVLINK_MSG_ID_GPS_RAW_INT  # 24
@@ -496,7 +513,7 @@ class MavlinkVehicle:
                 f"MavlinkVehicle.gimbal_yaw_frame must be 'earth' or 'vehicle', got {gimbal_yaw_frame!r}"
             )
         self.gimbal_yaw_frame = gimbal_yaw_frame
-        #: [start, end) on the boot clock without GNSS: no #33, GPS_RAW_INT without a fix
+        #: [start, end) on the boot clock without GNSS: no #33 nor #32, GPS_RAW_INT without a fix
         self.gnss_outage_us = None if gnss_outage_us is None else (int(gnss_outage_us[0]), int(gnss_outage_us[1]))
         self.connection = connection
         self.sysid = sysid
@@ -507,6 +524,8 @@ class MavlinkVehicle:
             MSG_SYSTEM_TIME: 1_000_000,
             MSG_ATTITUDE_QUATERNION: round(1e6 / att_rate_hz),
             MSG_GLOBAL_POSITION_INT: round(1e6 / pos_rate_hz),
+            # ArduPilot streams both in its POSITION group (SRn_POSITION): one rate
+            MSG_LOCAL_POSITION_NED: round(1e6 / pos_rate_hz),
         }
         if self.gimballed:
             self._default_interval_us[MSG_GIMBAL_DEVICE_ATTITUDE_STATUS] = round(1e6 / gimbal_rate_hz)
@@ -559,7 +578,7 @@ class MavlinkVehicle:
         its ``alt_amsl_m - alt_rel_m``, so every sample's ``alt_amsl_m - alt_rel_m`` should be that same
         altitude (the simulator's is the scenario origin's: the ground the observer took off from).
         ``nav_error``: a :class:`groundsim.world.nav_errors.NavErrorSample` (or None: exact) applied by
-        :func:`groundsim.world.nav_errors.reported_state` before anything is stored: #31, #33 and #285 carry
+        :func:`groundsim.world.nav_errors.reported_state` before anything is stored: #31, #33, #32 and #285 carry
         the reported attitude, position, velocity and gimbal attitude; the returned state is the reported one.
         """
         reported = dict(
@@ -648,7 +667,7 @@ class MavlinkVehicle:
                 return 0
             if msg_id == MSG_GIMBAL_DEVICE_ATTITUDE_STATUS and state.q_ned_from_gimbal is None:
                 return 0
-            if msg_id == MSG_GLOBAL_POSITION_INT and self._no_gnss(state.time_boot_us):
+            if msg_id in _POSITION_STREAMS and self._no_gnss(state.time_boot_us):
                 return 0
             if not forced and self._last_state_us_sent.get(msg_id) == state.time_boot_us:
                 return 0
@@ -682,6 +701,9 @@ class MavlinkVehicle:
                 )
             elif msg_id == MSG_GLOBAL_POSITION_INT:
                 mav.send(self._global_position_int(state).to_message())
+            elif msg_id == MSG_LOCAL_POSITION_NED:
+                n_m, e_m, d_m = self._p_local_ned_m(state)
+                mav.local_position_ned_send(time_boot_ms_from_us(state.time_boot_us), n_m, e_m, d_m, *state.v_ned_mps)
             elif msg_id == MSG_GIMBAL_DEVICE_ATTITUDE_STATUS:
                 mav.send(self._gimbal_status(state).to_message())
             elif not self._send_gcs_stream(msg_id, mav, now, state):  # pragma: no cover - streams fixed at construction
@@ -805,6 +827,17 @@ class MavlinkVehicle:
         return gimbal_device_attitude_status(
             s.time_boot_us, self._now_us, s.q_ned_from_gimbal, s.q_ned_from_body, self.gimbal_yaw_frame
         )
+
+    def _p_local_ned_m(self, s: VehicleState) -> tuple[float, float, float]:
+        """LOCAL_POSITION_NED's x, y, z of the state (module docstring): north and east on the plane tangent at home,
+        down = home's altitude - the state's, i.e. -relative_alt (as the autopilots' EKF origin height, no curvature
+        drop: 8 cm at 1 km from home, 2 m at 5 km, would set z apart from #33's relative_alt)."""
+        h = self._home or s  # home is the first state, stored before any state is sent
+        home_alt_m = h.alt_amsl_m - h.alt_rel_m
+        n_m, e_m, _ = ned_from_geodetic(
+            s.lat_deg, s.lon_deg, home_alt_m, GeodeticOrigin(h.lat_deg, h.lon_deg, home_alt_m)
+        )
+        return float(n_m), float(e_m), home_alt_m - s.alt_amsl_m
 
     def _global_position_int(self, s: VehicleState) -> GlobalPositionInt:
         """GLOBAL_POSITION_INT of the state, each velocity component saturated to the wire's int16 cm/s (logged)."""

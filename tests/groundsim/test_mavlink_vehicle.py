@@ -385,7 +385,7 @@ def test_set_message_interval_changes_the_rate_and_is_acked(link, use_int):
 @pytest.mark.parametrize(
     "cmd, p1, p2, result",
     [
-        (511, 32, 100_000, 2),  # LOCAL_POSITION_NED (#32): we do not emit it -> DENIED
+        (511, 63, 100_000, 2),  # GLOBAL_POSITION_INT_COV (#63): we do not emit it -> DENIED
         (511, 285, 100_000, 2),  # gimbal status, but not gimballed -> DENIED
         (511, 31.5, 100_000, 2),  # not an integer message id
         (511, 31, -2, 2),  # bad interval
@@ -643,6 +643,24 @@ def test_mavsdk_discovers_the_autopilot_and_reads_position_and_attitude():
 
 
 @pytest.mark.integration
+def test_mavsdk_reads_the_local_position_and_velocity_ned():
+    """MAVSDK's telemetry position_velocity_ned is LOCAL_POSITION_NED's: the vehicle holds still over home."""
+    mavsdk = pytest.importorskip("mavsdk")
+    from mavsdk.plugins.telemetry.telemetry import Telemetry
+
+    with mavsdk_autopilot(mavsdk) as (system, _):
+        tel = Telemetry(system)
+        deadline = time.monotonic() + WAIT_S
+        pv = tel.position_velocity_ned()
+        while math.isnan(pv.position.down_m) and time.monotonic() < deadline:  # NaN: none yet
+            time.sleep(0.05)
+            pv = tel.position_velocity_ned()
+        p, vel = pv.position, pv.velocity
+        assert (p.north_m, p.east_m, p.down_m) == pytest.approx((0.0, 0.0, -ALT_REL_M), abs=1e-5)
+        assert (vel.north_m_s, vel.east_m_s, vel.down_m_s) == pytest.approx(V_NED_MPS, rel=F32_REL)
+
+
+@pytest.mark.integration
 def test_gnss_outage_withholds_global_position_and_reports_no_fix_while_attitude_goes_on():
     port = free_udp_port()
     rx = open_mavlink2(f"udpin:127.0.0.1:{port}", GCS_SYS, GCS_COMP)
@@ -650,8 +668,10 @@ def test_gnss_outage_withholds_global_position_and_reports_no_fix_while_attitude
     with MavlinkVehicle(
         f"udpout:127.0.0.1:{port}", unix_time_at_boot_us=1_700_000_000_000_000, gnss_outage_us=outage
     ) as vehicle:
-        _lockstep(vehicle, 0, 3_000_000)
-        msgs = _drain(rx)
+        msgs = []
+        for t0_us in range(0, 3_000_000, 500_000):  # drained every 0.5 s: 3 s of streams overflow a socket's buffer
+            _lockstep(vehicle, t0_us, t0_us + 500_000)
+            msgs += _drain(rx)
     rx.close()
     inside = lambda m: outage[0] <= m.time_boot_ms * 1000 < outage[1]  # noqa: E731
     pos = _of(msgs, "GLOBAL_POSITION_INT")
@@ -730,6 +750,71 @@ def test_relative_alt_is_above_the_home_position_the_vehicle_reports():
         assert abs(p.alt - p.relative_alt - home.altitude) <= 1  # mm: each rounded once
 
 
+ATOL_LOCAL_M = 1e-3  # 1 mm: float32 x, y of a few km carry ~0.2 mm
+
+
+def _command_long(v, cmd: int, p1: float, p2: float = 0.0) -> None:
+    msg = mavlink2.MAVLink_command_long_message(1, 1, cmd, 0, p1, p2, 0, 0, 0, 0, 0)
+    v._on_command(mavlink2.MAVLink(None).parse_char(bytes(msg.pack(mavlink2.MAVLink(None, GCS_SYS, GCS_COMP)))))
+
+
+def test_local_position_ned_is_the_position_about_home_with_z_minus_relative_alt():
+    """common.xml LOCAL_POSITION_NED (#32), as ArduPilot and PX4 send it about their EKF origin: here HOME_POSITION
+    (the first state's lat/lon at the altitude relative_alt is measured from).  The truth: points put at known
+    north/east metres from home by pymap3d (the plane tangent at home) and at known heights above it."""
+    pymap3d = pytest.importorskip("pymap3d")
+    home_alt_m = ALT_AMSL_M - ALT_REL_M
+    truth = [  # (north, east, height above home m, v_ned m/s)
+        (0.0, 0.0, ALT_REL_M, V_NED_MPS),
+        (1234.5, -678.9, 150.25, (-3.5, 20.25, 1.5)),
+        (-2500.0, 3100.0, 80.0, (0.0, 0.0, 0.0)),
+    ]
+    v, got = _captured_vehicle()
+    try:
+        for k, (n_m, e_m, h_m, v_ned) in enumerate(truth):
+            lat, lon, _ = pymap3d.ned2geodetic(n_m, e_m, 0.0, LAT_DEG, LON_DEG, home_alt_m)
+            t_us = 1_000_000 * k
+            _state(v, t_us, lat_deg=lat, lon_deg=lon, alt_amsl_m=home_alt_m + h_m, alt_rel_m=h_m, v_ned_mps=v_ned)
+            v.poll(t_us)
+    finally:
+        v.close()
+    local = _of(got, "LOCAL_POSITION_NED")
+    pos = _of(got, "GLOBAL_POSITION_INT")
+    assert len(local) == len(truth) == len(pos)
+    for m, p, (n_m, e_m, h_m, v_ned) in zip(local, pos, truth):
+        assert m.time_boot_ms == p.time_boot_ms  # the state's stamp, as #33's
+        assert (m.x, m.y) == pytest.approx((n_m, e_m), abs=ATOL_LOCAL_M)
+        assert m.z == pytest.approx(-h_m, rel=F32_REL)
+        assert m.z == pytest.approx(-p.relative_alt / 1000.0, abs=1e-3)  # mm: #33 rounds it once
+        assert (m.vx, m.vy, m.vz) == pytest.approx(v_ned, rel=F32_REL, abs=1e-6)
+
+
+def test_local_position_ned_is_streamed_set_requested_and_withheld_without_gnss_as_global_position():
+    v, got = _captured_vehicle(pos_rate_hz=25, gnss_outage_us=(3_000_000, 4_000_000))
+    try:
+        _lockstep(v, 0, 1_000_000)
+        assert v.message_interval_us(32) == 40_000  # #33's rate
+        _command_long(v, mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL, 32, 100_000)  # at 995 ms, the last poll
+        _lockstep(v, 1_000_000, 2_000_000)
+        _command_long(v, mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL, 32, -1)
+        _lockstep(v, 2_000_000, 2_500_000)
+        _command_long(v, mavlink2.MAV_CMD_REQUEST_MESSAGE, 32)
+        _lockstep(v, 2_500_000, 3_000_000)
+        _command_long(v, mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL, 32, 0)  # the default again
+        _lockstep(v, 3_000_000, 5_000_000)
+    finally:
+        v.close()
+    assert [a.result for a in _of(got, "COMMAND_ACK")] == [mavlink2.MAV_RESULT_ACCEPTED] * 4
+    ms = [m.time_boot_ms for m in _of(got, "LOCAL_POSITION_NED")]
+    default = [t for t in ms if t < 1000]
+    at_10hz = [t for t in ms if 1000 <= t < 2000]
+    assert len(default) == 25 and set(np.diff(default)) == {40}
+    assert at_10hz == [1000, *range(1095, 2000, 100)]  # the new schedule counts from the command (995 ms)
+    assert [t for t in ms if 2000 <= t < 3000] == [2500]  # off, but one on request
+    assert not [t for t in ms if 3000 <= t < 4000]  # no fix: no position, as #33
+    assert len([t for t in ms if t >= 4000]) == 25
+
+
 def test_gps_raw_int_alt_ellipsoid_is_alt_plus_the_worlds_geoid_undulation():
     from groundsim.io.mavlink_vehicle import GEOID_UNDULATION_M
 
@@ -792,7 +877,7 @@ def test_message_intervals_can_be_asked_as_a_px4_answers(link, via):
     assert ask(31) == (0, [(31, 20_000)])
     assert _command(rx, vehicle, 0, 511, 33, -1).result == 0  # position off
     assert ask(33) == (0, [(33, -1)])
-    assert ask(32) == (0, [(32, 0)])  # LOCAL_POSITION_NED: not streamed
+    assert ask(63) == (0, [(63, 0)])  # GLOBAL_POSITION_INT_COV: not streamed
     assert ask(31.5) == (2, [])  # not a message id: DENIED, nothing sent
 
 
