@@ -241,8 +241,8 @@ def _add_run(p: argparse.ArgumentParser) -> None:
         "--gimbal-frame",
         choices=("earth", "vehicle"),
         default="earth",
-        help="the frame of a gimballed vehicle's GIMBAL_DEVICE_ATTITUDE_STATUS (#285): earth (YAW_IN_EARTH_FRAME,"
-        " delta_yaw = vehicle yaw) or vehicle (ArduPilot's: ROLL_LOCK | PITCH_LOCK | YAW_IN_VEHICLE_FRAME |"
+        help="the frame of a gimballed vehicle's GIMBAL_DEVICE_ATTITUDE_STATUS (#285): earth (YAW_IN_EARTH_FRAME |"
+        " PITCH_LOCK | YAW_LOCK, delta_yaw = vehicle yaw) or vehicle (ArduPilot's: ROLL_LOCK | PITCH_LOCK | YAW_IN_VEHICLE_FRAME |"
         " YAW_LOCK, delta_yaw NaN, stamped when sent; the daemon turns it with the vehicle's attitude)"
         " (default: %(default)s)",
     )

@@ -36,8 +36,9 @@ LOCAL_POSITION_NED (#32)                     25 Hz     #33's position in the loc
                                                        POSITION group) and set alike (``pos_rate_hz``)
 GIMBAL_DEVICE_ATTITUDE_STATUS (#285)         10 Hz     only when ``gimballed``: q = gimbal attitude
                                                        (w, x, y, z) in the earth frame (``earth``:
-                                                       flag YAW_IN_EARTH_FRAME, delta_yaw = vehicle
-                                                       yaw) or, as ArduPilot sends it, the vehicle
+                                                       YAW_IN_EARTH_FRAME | PITCH_LOCK | YAW_LOCK,
+                                                       delta_yaw = vehicle yaw) or, as ArduPilot
+                                                       sends it, the vehicle
                                                        frame (``vehicle``: ROLL_LOCK | PITCH_LOCK |
                                                        YAW_IN_VEHICLE_FRAME | YAW_LOCK, delta_yaw
                                                        NaN); rates NaN; gimbal_device_id 1
@@ -274,8 +275,19 @@ ARDUCOPTER_LOITER_MODE = 5
 
 #: GIMBAL_DEVICE_ATTITUDE_STATUS's frames (:func:`gimbal_device_attitude_status`)
 GIMBAL_FRAMES = ("earth", "vehicle")
-#: ArduPilot's #285 flags for a mount pointing at a location (get_gimbal_device_flags: roll and pitch always
-#: earth-locked, yaw in the vehicle frame, locked on the scenery)
+#: what the simulated gimbal holds: it aims at a point of the world (the target), so its pitch and yaw are the
+#: earth's (common.xml: "relative to horizon", "relative to North"); a pan/tilt on the mount, its roll about the
+#: optical axis follows the mount, so no ROLL_LOCK.  YAW_LOCK also makes the
+#: earth-frame q read as the earth's by a receiver of the older rule (no YAW_IN_* flag understood: YAW_LOCK set
+#: means earth frame), as PX4's own gimbal status still reads it
+EARTH_GIMBAL_FLAGS = (
+    mavlink2.GIMBAL_DEVICE_FLAGS_YAW_IN_EARTH_FRAME
+    | mavlink2.GIMBAL_DEVICE_FLAGS_PITCH_LOCK
+    | mavlink2.GIMBAL_DEVICE_FLAGS_YAW_LOCK
+)
+#: ArduPilot's #285 flags for a mount pointing at a location, sent as they are (get_gimbal_device_flags: roll and
+#: pitch always earth-locked, yaw in the vehicle frame, locked on the scenery; to a receiver of the older rule its
+#: YAW_LOCK says earth frame for this vehicle-frame q, as a real ArduPilot's does)
 ARDUPILOT_GIMBAL_FLAGS = (
     mavlink2.GIMBAL_DEVICE_FLAGS_ROLL_LOCK
     | mavlink2.GIMBAL_DEVICE_FLAGS_PITCH_LOCK
@@ -296,7 +308,7 @@ def gimbal_device_attitude_status(
 ) -> GimbalDeviceAttitudeStatus:
     """GIMBAL_DEVICE_ATTITUDE_STATUS of a gimbal attitude ``q_ned_from_gimbal`` (w, x, y, z, the local level's) on a
     vehicle at ``q_ned_from_body``, in ``frame`` (module docstring, "Gimbal"): ``earth`` stamped with the state's
-    time, q as is, delta_yaw = the vehicle yaw; ``vehicle`` as ArduPilot sends it, stamped when sent
+    time, q as is, :data:`EARTH_GIMBAL_FLAGS`, delta_yaw = the vehicle yaw; ``vehicle`` as ArduPilot sends it, stamped when sent
     (``send_time_boot_us``: ArduPilot's AP_HAL::millis() at the send), q with the vehicle's yaw taken out,
     :data:`ARDUPILOT_GIMBAL_FLAGS`, delta_yaw NaN.  Rates NaN, gimbal_device_id 1 in both."""
     if frame not in GIMBAL_FRAMES:
@@ -307,7 +319,7 @@ def gimbal_device_attitude_status(
         return GimbalDeviceAttitudeStatus(
             int(state_time_boot_us),
             tuple(float(c) for c in q_ned_from_gimbal),
-            mavlink2.GIMBAL_DEVICE_FLAGS_YAW_IN_EARTH_FRAME,
+            EARTH_GIMBAL_FLAGS,
             delta_yaw_rad=yaw_rad,
             gimbal_device_id=1,
         )

@@ -431,11 +431,11 @@ def test_request_message_sends_one_now(link):
 
 
 @pytest.mark.integration
-@pytest.mark.parametrize("yaw_frame, flags", [("earth", 64), ("vehicle", 4 | 8 | 16 | 32)])
+@pytest.mark.parametrize("yaw_frame, flags", [("earth", 8 | 16 | 64), ("vehicle", 4 | 8 | 16 | 32)])
 def test_gimballed_vehicle_sends_gimbal_device_attitude_status(yaw_frame, flags):
-    """q_gimbal is q_ned_from_gimbal; on the wire: NED as is (earth frame, delta_yaw = vehicle yaw), or with the
-    vehicle's yaw taken out as ArduPilot sends it (vehicle frame: ROLL_LOCK | PITCH_LOCK | YAW_LOCK |
-    YAW_IN_VEHICLE_FRAME, delta_yaw NaN)."""
+    """q_gimbal is q_ned_from_gimbal; on the wire: NED as is (earth frame: YAW_IN_EARTH_FRAME | PITCH_LOCK | YAW_LOCK,
+    the gimbal aiming at the target, delta_yaw = vehicle yaw), or with the vehicle's yaw taken out as ArduPilot sends
+    it (vehicle frame: ROLL_LOCK | PITCH_LOCK | YAW_LOCK | YAW_IN_VEHICLE_FRAME, delta_yaw NaN)."""
     port = free_udp_port()
     rx = open_mavlink2(f"udpin:127.0.0.1:{port}", GCS_SYS, GCS_COMP)
     q_ned_from_gimbal = tuple(float(x) for x in quat_from_euler(0.05, -0.5, 2.2))
@@ -462,6 +462,26 @@ def test_gimballed_vehicle_sends_gimbal_device_attitude_status(yaw_frame, flags)
         r, p, y = (float(a) for a in euler_from_quat(q_wire))
         assert (r, p) == pytest.approx((0.05, -0.5), abs=1e-5)
         assert y == pytest.approx(2.2 - yaw_rad, abs=1e-5)
+
+
+def test_earth_frame_gimbal_flags_say_the_earth_frame_by_either_rule_and_what_the_gimbal_holds():
+    """common.xml #285: YAW_IN_EARTH_FRAME names the q's frame; a receiver of the older rule (no YAW_IN_* flag
+    understood) takes YAW_LOCK for the earth frame, so the earth q carries it too.  The simulated gimbal aims at the
+    target (pitch and yaw the earth's: PITCH_LOCK, YAW_LOCK); a pan/tilt, its roll follows the mount (no ROLL_LOCK)."""
+    from groundsim.io.mavlink_vehicle import gimbal_device_attitude_status
+    from onboard.io.mavlink_wire import GimbalDeviceAttitudeStatus, GimbalReference
+
+    q_ned_from_gimbal = tuple(float(x) for x in quat_from_euler(0.05, -0.5, 2.2))
+    st = gimbal_device_attitude_status(0, 0, q_ned_from_gimbal, Q_NED_FROM_BODY, "earth")
+    f = st.flags
+    older_rule_says_earth = bool(f & mavlink2.GIMBAL_DEVICE_FLAGS_YAW_LOCK)
+    assert (
+        f & mavlink2.GIMBAL_DEVICE_FLAGS_YAW_IN_EARTH_FRAME
+        and not f & mavlink2.GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME
+    )
+    assert older_rule_says_earth
+    assert f & mavlink2.GIMBAL_DEVICE_FLAGS_PITCH_LOCK and not f & mavlink2.GIMBAL_DEVICE_FLAGS_ROLL_LOCK
+    assert GimbalDeviceAttitudeStatus.from_message(st.to_message()).reference == GimbalReference.EARTH
 
 
 @pytest.mark.integration
