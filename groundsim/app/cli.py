@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import signal
 import sys
 import threading
@@ -221,13 +222,15 @@ def _add_run(p: argparse.ArgumentParser) -> None:
         default=None,
         metavar="PATH",
         help="write the ground-truth CSV here; a scenario of several observers writes one per observer,"
-        " PATH's stem + .NAME.csv (out/truth.csv -> out/truth.uav1.csv, out/truth.uav2.csv)",
+        " PATH's stem + .NAME.csv (out/truth.csv -> out/truth.uav1.csv, out/truth.uav2.csv); missing folders are"
+        " made, as --out's of the other commands",
     )
     p.add_argument(
         "--record",
         default=None,
         metavar="FILE.mcap",
-        help="record the frames, MAVLink (both ways) and the truth to this MCAP file (onboard/io/record.py)",
+        help="record the frames, MAVLink (both ways) and the truth to this MCAP file (onboard/io/record.py); missing"
+        " folders are made, as the daemon's --record",
     )
     p.add_argument(
         "--guided",
@@ -298,6 +301,9 @@ def _run_config(args):
     clash = same_file_clash([("--truth", args.truth), ("--record", args.record)], [("--scenario", scenario_file)])
     if clash is not None:
         raise ConfigError(clash)
+    for option, path in (("--truth", args.truth), ("--record", args.record)):
+        if path:
+            _check_output_folder(option, path)
     endpoints = mavlink_endpoints(scenario, args.mavlink, vehicle)
     if not args.no_render and not (
         args.zenoh_connect or args.zenoh_listen or args.zenoh_config or args.zenoh_multicast_scouting
@@ -328,6 +334,17 @@ def _run_config(args):
         gimbal_frame=getattr(args, "gimbal_frame", "earth"),
         signing_key=_signing_key(getattr(args, "mavlink_signing_key", None)),
     )
+
+
+def _check_output_folder(option: str, path: str) -> None:
+    """A ConfigError when a file stands where ``path``'s folder, or one of its missing parents, would be made.  Both
+    outputs make missing folders, but met a file in the way in words of their own ('Not a directory' from the truth
+    file's open, 'File exists' from the recorder's makedirs)."""
+    existing = os.path.dirname(os.path.abspath(path))
+    while not os.path.exists(existing):
+        existing = os.path.dirname(existing)
+    if not os.path.isdir(existing):
+        raise ConfigError(f"{option} {path}: cannot write: {existing} is a file, not a folder")
 
 
 def _signing_key(path: str | None) -> bytes | None:

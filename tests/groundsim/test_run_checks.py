@@ -32,6 +32,22 @@ def test_an_unwritable_record_path_is_one_line_exit_2(tmp_path, capsys, where):
     assert line.startswith(f"groundsim run: error: --record {path}: cannot write: "), line
 
 
+@pytest.mark.parametrize("option, name", [("--truth", "t.csv"), ("--record", "r.mcap")])
+def test_truth_and_record_make_missing_folders_and_name_a_file_in_the_way_alike(tmp_path, capsys, option, name):
+    """Both outputs make missing folders, as the other commands' --out and the daemon's --record; a file where a
+    folder would be made is refused before the run in the same words for both."""
+    made = tmp_path / "new" / "deeper" / name
+    assert cli_main([*RUN, option, str(made)]) == 0
+    assert made.is_file() and made.stat().st_size > 0
+    (tmp_path / "afile").write_text("")
+    for path in (tmp_path / "afile" / name, tmp_path / "afile" / "sub" / name):
+        assert cli_main([*RUN, option, str(path)]) == 2
+        assert _one_line_error(capsys) == (
+            f"groundsim run: error: {option} {path}: cannot write: {tmp_path / 'afile'} is a file, not a folder"
+        )
+    assert (tmp_path / "afile").read_text() == ""
+
+
 def test_a_gnss_dropout_at_or_after_the_end_is_refused(capsys):
     assert cli_main([*RUN, "--gnss-dropout=5:1"]) == 2
     assert "error: --gnss-dropout: expected a start before the run's end (1 s), got 5 s" in _one_line_error(capsys)
