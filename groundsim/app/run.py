@@ -303,7 +303,7 @@ class RunConfig:
         if u is not None and (isinstance(u, bool) or not isinstance(u, int) or not 0 <= u < 2**62):
             raise ConfigError(f"RunConfig.start_time_unix_us must be a UNIX time in us or None, got {u!r}")
         object.__setattr__(self, "run_seed", check_run_seed(self.run_seed))
-        from groundsim.io.mavlink_vehicle import check_gimbal_frame
+        from groundsim.io.vehicle_messages import check_gimbal_frame
 
         check_gimbal_frame(self.gimbal_frame)
         object.__setattr__(self, "duration_s", check_duration_s(self.duration_s, sc))

@@ -149,7 +149,7 @@ class EvalOptions:
     gimbal_frame: str = "earth"
 
     def __post_init__(self) -> None:
-        from groundsim.io.mavlink_vehicle import check_gimbal_frame
+        from groundsim.io.vehicle_messages import check_gimbal_frame
 
         check_gimbal_frame(self.gimbal_frame)
         d = self.duration_s

@@ -35,7 +35,7 @@ class TelemetryFeed:
         gimbal_frame: str = "earth",
     ) -> None:
         self.core = core
-        #: #285's frame, encoded as MavlinkVehicle encodes it (groundsim.io.mavlink_vehicle.gimbal_device_attitude_status)
+        #: #285's frame, encoded as MavlinkVehicle encodes it (groundsim.io.vehicle_messages.gimbal_device_attitude_status)
         self.gimbal_frame = gimbal_frame
         #: feed the attitude's body rates, as the daemon's link gets them, so that a pose past the newest sample is
         #: extrapolated as in the daemon (:meth:`feed_for_rotation`); off, a lookup waits for its bracket
@@ -60,7 +60,7 @@ class TelemetryFeed:
         the wire's quantisation).  The body rates are fed only with ``body_rates`` (the gimbal's are NaN on the
         simulated vehicle's wire anyway): the lockstep loop waits for the bracketing sample instead of
         extrapolating (the benchmark's accuracy tables are defined so)."""
-        from groundsim.io.mavlink_vehicle import gimbal_device_attitude_status
+        from groundsim.io.vehicle_messages import gimbal_device_attitude_status
         from groundsim.world.nav_errors import reported_state
         from onboard.io.mavlink_wire import (
             AttitudeQuaternion,

@@ -2,7 +2,9 @@
 
 HEARTBEAT, SYSTEM_TIME, #31, #33, #285, TIMESYNC and COMMAND_ACK are encoded by
 :mod:`onboard.io.mavlink_wire` (the daemon decodes them with the same module); the connection string
-follows its one grammar (:func:`onboard.io.mavlink_wire.parse_endpoint`).
+follows its one grammar (:func:`onboard.io.mavlink_wire.parse_endpoint`).  This module is the link and its
+loop (streams' schedule, requests, services); the state and what each message says are
+:mod:`groundsim.io.vehicle_messages` (no socket, no clock).
 
 The observer is system 1, component 1 (``MAV_COMP_ID_AUTOPILOT1``) and emits, on the
 simulation's boot clock (the caller passes ``time_boot_us``; nothing here reads a wall clock
@@ -50,7 +52,8 @@ GPS_RAW_INT (#24)                            5 Hz      3D fix (RTK fixed for an 
                                                        satellites, the #33 position, h_acc / v_acc of the
                                                        case (``gnss_accuracy``); inside ``gnss_outage_us``
                                                        no fix, 0 satellites, accuracies 0 = unknown (no #33, #32);
-                                                       alt_ellipsoid = alt + :data:`GEOID_UNDULATION_M`
+                                                       alt_ellipsoid = alt + GEOID_UNDULATION_M (see
+                                                       :mod:`groundsim.io.vehicle_messages`)
 ATTITUDE (#30)                               10 Hz     roll, pitch, yaw of ``q_ned_from_body``, rates
 BATTERY_STATUS (#147)                        1 Hz      4 cells (others UINT16_MAX), current, mAh used
 HOME_POSITION (#242)                         0.2 Hz    the first state's lat/lon at the altitude its
@@ -61,7 +64,7 @@ AUTOPILOT_VERSION (#148)                     request   MAVLINK2 | MISSION_INT | 
 ===========================================  ========  =============================================
 
 A ground station's other requests: PARAM_REQUEST_LIST -> PARAM_VALUE for each of
-:data:`DEFAULT_PARAMS` (REAL32), PARAM_REQUEST_READ (name or index) and PARAM_SET (stored, echoed);
+:data:`~groundsim.io.vehicle_messages.DEFAULT_PARAMS` (REAL32), PARAM_REQUEST_READ (name or index) and PARAM_SET (stored, echoed);
 MISSION_REQUEST_LIST -> MISSION_COUNT 0 of the asked mission type (no mission, fence or rally);
 MISSION_CLEAR_ALL -> MISSION_ACK ACCEPTED; MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES -> AUTOPILOT_VERSION;
 MAV_CMD_GET_HOME_POSITION -> HOME_POSITION; MAV_CMD_GET_MESSAGE_INTERVAL and REQUEST_MESSAGE(244, param2 = id)
@@ -130,31 +133,55 @@ import math
 import socket
 import time
 from collections import Counter
-from dataclasses import dataclass
 
 import numpy as np
 
-from onboard.core.errors import ConfigError, InputError, IrtrackError
-from onboard.core.frames import (
-    FrameError,
-    GeodeticOrigin,
-    check_unit_quat,
-    euler_from_quat,
-    ned_from_geodetic,
-    quat_conjugate,
-    quat_from_euler,
-    quat_multiply,
-    quat_normalize,
+from groundsim.io.vehicle_messages import (
+    ARDUCOPTER_GUIDED_MODE,
+    ARDUCOPTER_LOITER_MODE,
+    BATTERY_CELLS,
+    DATA_STREAMS,
+    DEFAULT_PARAMS,
+    GCS_STREAM_INTERVAL_US,
+    GEOID_UNDULATION_M,
+    GIMBAL_FRAMES,
+    MSG_ATTITUDE,
+    MSG_ATTITUDE_QUATERNION,
+    MSG_AUTOPILOT_VERSION,
+    MSG_BATTERY_STATUS,
+    MSG_EXTENDED_SYS_STATE,
+    MSG_GIMBAL_DEVICE_ATTITUDE_STATUS,
+    MSG_GLOBAL_POSITION_INT,
+    MSG_GPS_RAW_INT,
+    MSG_HEARTBEAT,
+    MSG_HOME_POSITION,
+    MSG_LOCAL_POSITION_NED,
+    MSG_SYS_STATUS,
+    MSG_SYSTEM_TIME,
+    NEEDS_STATE,
+    POSITION_STREAMS,
+    MavlinkConfigError,
+    VehicleState,
+    attitude,
+    autopilot_version,
+    battery_remaining_pct,
+    battery_status,
+    check_gimbal_frame,
+    extended_sys_state,
+    gimbal_device_attitude_status,
+    gps_raw_int,
+    heartbeat,
+    home_position,
+    local_position_ned,
+    sys_status,
 )
+from onboard.core.errors import ConfigError, InputError, IrtrackError
 from onboard.io.mavlink_transport import new_parser, new_signing, signature_refusal
 from onboard.io.mavlink_wire import (
     INT16_MAX,
-    INT32_MAX,
-    UINT16_MAX,
     AttitudeQuaternion,
     GimbalDeviceAttitudeStatus,
     GlobalPositionInt,
-    Heartbeat,
     SetPositionTargetLocalNed,
     SystemTime,
     Timesync,
@@ -163,11 +190,15 @@ from onboard.io.mavlink_wire import (
     mavlink2,
     parse_endpoint,
     requested_interval,
-    time_boot_ms_from_us,
 )
 
 __all__ = [
+    "ARDUCOPTER_GUIDED_MODE",
+    "ARDUCOPTER_LOITER_MODE",
+    "BATTERY_CELLS",
     "DEFAULT_CONNECTION",
+    "DEFAULT_PARAMS",
+    "GEOID_UNDULATION_M",
     "MavlinkConfigError",
     "MavlinkLinkError",
     "VehicleState",
@@ -182,75 +213,6 @@ log = logging.getLogger(__name__)
 
 DEFAULT_CONNECTION = "udpout:127.0.0.1:14540"
 
-MSG_HEARTBEAT = mavlink2.MAVLINK_MSG_ID_HEARTBEAT  # 0
-MSG_SYSTEM_TIME = mavlink2.MAVLINK_MSG_ID_SYSTEM_TIME  # 2
-MSG_ATTITUDE_QUATERNION = mavlink2.MAVLINK_MSG_ID_ATTITUDE_QUATERNION  # 31
-MSG_GLOBAL_POSITION_INT = mavlink2.MAVLINK_MSG_ID_GLOBAL_POSITION_INT  # 33
-MSG_LOCAL_POSITION_NED = mavlink2.MAVLINK_MSG_ID_LOCAL_POSITION_NED  # 32
-MSG_GIMBAL_DEVICE_ATTITUDE_STATUS = mavlink2.MAVLINK_MSG_ID_GIMBAL_DEVICE_ATTITUDE_STATUS  # 285
-_DATA_STREAMS = (
-    MSG_ATTITUDE_QUATERNION,
-    MSG_GLOBAL_POSITION_INT,
-    MSG_LOCAL_POSITION_NED,
-    MSG_GIMBAL_DEVICE_ATTITUDE_STATUS,
-)
-#: the position streams, withheld without a GNSS fix (the simulated vehicle then has no position estimate)
-_POSITION_STREAMS = (MSG_GLOBAL_POSITION_INT, MSG_LOCAL_POSITION_NED)
-# what a ground station reads of a whole vehicle: streams at the usual rates, or on request
-MSG_SYS_STATUS = mavlink2.MAVLINK_MSG_ID_SYS_STATUS  # 1
-MSG_GPS_RAW_INT = mavlink2.MAVLINK_MSG_ID_GPS_RAW_INT  # 24
-MSG_ATTITUDE = mavlink2.MAVLINK_MSG_ID_ATTITUDE  # 30
-MSG_BATTERY_STATUS = mavlink2.MAVLINK_MSG_ID_BATTERY_STATUS  # 147
-MSG_AUTOPILOT_VERSION = mavlink2.MAVLINK_MSG_ID_AUTOPILOT_VERSION  # 148
-MSG_HOME_POSITION = mavlink2.MAVLINK_MSG_ID_HOME_POSITION  # 242
-MSG_EXTENDED_SYS_STATE = mavlink2.MAVLINK_MSG_ID_EXTENDED_SYS_STATE  # 245
-_NEEDS_STATE = (MSG_GPS_RAW_INT, MSG_ATTITUDE, MSG_HOME_POSITION)
-#: default intervals of the ground-station streams, us (None: only on request)
-_GCS_STREAM_INTERVAL_US = {
-    MSG_SYS_STATUS: 1_000_000,
-    MSG_EXTENDED_SYS_STATE: 1_000_000,
-    MSG_GPS_RAW_INT: 200_000,
-    MSG_ATTITUDE: 100_000,
-    MSG_BATTERY_STATUS: 1_000_000,
-    MSG_HOME_POSITION: 5_000_000,
-    MSG_AUTOPILOT_VERSION: None,
-}
-_SENSORS = (
-    mavlink2.MAV_SYS_STATUS_SENSOR_3D_GYRO
-    | mavlink2.MAV_SYS_STATUS_SENSOR_3D_ACCEL
-    | mavlink2.MAV_SYS_STATUS_SENSOR_3D_MAG
-    | mavlink2.MAV_SYS_STATUS_SENSOR_ABSOLUTE_PRESSURE
-    | mavlink2.MAV_SYS_STATUS_SENSOR_GPS
-    | mavlink2.MAV_SYS_STATUS_AHRS
-    | mavlink2.MAV_SYS_STATUS_SENSOR_BATTERY
-)
-# PARAM_ENCODE_C_CAST, not the deprecated PARAM_FLOAT it replaces (every parameter is a REAL32: the same bytes
-# either way); SET_POSITION_TARGET_LOCAL_NED: a guided vehicle takes velocity setpoints
-_CAPABILITIES = (
-    mavlink2.MAV_PROTOCOL_CAPABILITY_MAVLINK2
-    | mavlink2.MAV_PROTOCOL_CAPABILITY_MISSION_INT
-    | mavlink2.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
-    | mavlink2.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_C_CAST
-    | mavlink2.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_LOCAL_NED
-)
-#: geoid height above the WGS84 ellipsoid (m) in the simulated world: its positions are ellipsoidal heights
-#: (the NED frames of :mod:`onboard.core.frames`), reported as AMSL, so its geoid is the ellipsoid and GPS_RAW_INT's
-#: alt_ellipsoid equals its alt; common.xml gives alt_ellipsoid no "unknown" value, so 0 would claim sea level
-GEOID_UNDULATION_M = 0.0
-BATTERY_CELLS = 4
-BATTERY_FULL_V, BATTERY_EMPTY_V = 4.2, 3.5  # per cell
-BATTERY_DRAIN_PCT_PER_S = 0.05  # 100 % -> 0 % in 2000 s: a long simulated flight never runs flat
-BATTERY_CURRENT_A = 12.0
-#: the small parameter set PARAM_REQUEST_LIST returns (name -> value; all MAV_PARAM_TYPE_REAL32)
-DEFAULT_PARAMS = (
-    ("MAV_SYS_ID", 1.0),
-    ("MAV_COMP_ID", 1.0),
-    ("MAV_TYPE", float(mavlink2.MAV_TYPE_QUADROTOR)),
-    ("BAT_N_CELLS", float(BATTERY_CELLS)),
-    ("BAT_CAPACITY", 5000.0),
-    ("SIM_FRAME_RATE", 30.0),
-)
-
 _ACK_COUNTER = {
     mavlink2.MAV_RESULT_ACCEPTED: "ack_accepted",
     mavlink2.MAV_RESULT_DENIED: "ack_denied",
@@ -258,80 +220,6 @@ _ACK_COUNTER = {
 }
 
 _LOG_EVERY_S = 10.0  # a repeated network complaint is logged at most this often per reason
-
-# armed, stabilised, guided, pilot's sticks live: common.xml's MAV_MODE_GUIDED_ARMED (216), the whole mode of the
-# generic autopilot, which has no custom mode; ArduCopter sets MANUAL_INPUT_ENABLED in every mode (stick mixing) and
-# GUIDED_ENABLED in its position-controlled ones (LOITER, GUIDED), then CUSTOM_MODE_ENABLED beside its custom_mode
-_BASE_MODE = mavlink2.MAV_MODE_GUIDED_ARMED
-ARDUCOPTER_BASE_MODE = _BASE_MODE | mavlink2.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
-
-
-#: ArduCopter's GUIDED custom_mode: the mode the simulated vehicle reports with ``guided`` (what the daemon's
-#: ``guidance.accept_custom_mode`` expects by default)
-ARDUCOPTER_GUIDED_MODE = 4
-#: ArduCopter's LOITER custom_mode: the guided vehicle's mode until its pilot hands it over to the companion
-ARDUCOPTER_LOITER_MODE = 5
-
-
-#: GIMBAL_DEVICE_ATTITUDE_STATUS's frames (:func:`gimbal_device_attitude_status`)
-GIMBAL_FRAMES = ("earth", "vehicle")
-#: what the simulated gimbal holds: it aims at a point of the world (the target), so its pitch and yaw are the
-#: earth's (common.xml: "relative to horizon", "relative to North"); a pan/tilt on the mount, its roll about the
-#: optical axis follows the mount, so no ROLL_LOCK.  YAW_LOCK also makes the
-#: earth-frame q read as the earth's by a receiver of the older rule (no YAW_IN_* flag understood: YAW_LOCK set
-#: means earth frame), as PX4's own gimbal status still reads it
-EARTH_GIMBAL_FLAGS = (
-    mavlink2.GIMBAL_DEVICE_FLAGS_YAW_IN_EARTH_FRAME
-    | mavlink2.GIMBAL_DEVICE_FLAGS_PITCH_LOCK
-    | mavlink2.GIMBAL_DEVICE_FLAGS_YAW_LOCK
-)
-#: ArduPilot's #285 flags for a mount pointing at a location, sent as they are (get_gimbal_device_flags: roll and
-#: pitch always earth-locked, yaw in the vehicle frame, locked on the scenery; to a receiver of the older rule its
-#: YAW_LOCK says earth frame for this vehicle-frame q, as a real ArduPilot's does)
-ARDUPILOT_GIMBAL_FLAGS = (
-    mavlink2.GIMBAL_DEVICE_FLAGS_ROLL_LOCK
-    | mavlink2.GIMBAL_DEVICE_FLAGS_PITCH_LOCK
-    | mavlink2.GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME
-    | mavlink2.GIMBAL_DEVICE_FLAGS_YAW_LOCK
-)
-
-
-def check_gimbal_frame(frame: str, option: str = "--gimbal-frame") -> str:
-    """``frame`` if it is one of :data:`GIMBAL_FRAMES`, else a ConfigError naming ``option``."""
-    if frame not in GIMBAL_FRAMES:
-        raise ConfigError(f"{option}: expected {' or '.join(GIMBAL_FRAMES)}, got {frame!r}")
-    return frame
-
-
-def gimbal_device_attitude_status(
-    state_time_boot_us: int, send_time_boot_us: int, q_ned_from_gimbal, q_ned_from_body, frame: str
-) -> GimbalDeviceAttitudeStatus:
-    """GIMBAL_DEVICE_ATTITUDE_STATUS of a gimbal attitude ``q_ned_from_gimbal`` (w, x, y, z, the local level's) on a
-    vehicle at ``q_ned_from_body``, in ``frame`` (module docstring, "Gimbal"): ``earth`` stamped with the state's
-    time, q as is, :data:`EARTH_GIMBAL_FLAGS`, delta_yaw = the vehicle yaw; ``vehicle`` as ArduPilot sends it, stamped when sent
-    (``send_time_boot_us``: ArduPilot's AP_HAL::millis() at the send), q with the vehicle's yaw taken out,
-    :data:`ARDUPILOT_GIMBAL_FLAGS`, delta_yaw NaN.  Rates NaN, gimbal_device_id 1 in both."""
-    if frame not in GIMBAL_FRAMES:
-        raise MavlinkConfigError(f"gimbal frame must be one of {', '.join(GIMBAL_FRAMES)}, got {frame!r}")
-    _, _, yaw_rad = euler_from_quat(np.asarray(q_ned_from_body, dtype=float))
-    yaw_rad = float(yaw_rad)
-    if frame == "earth":
-        return GimbalDeviceAttitudeStatus(
-            int(state_time_boot_us),
-            tuple(float(c) for c in q_ned_from_gimbal),
-            EARTH_GIMBAL_FLAGS,
-            delta_yaw_rad=yaw_rad,
-            gimbal_device_id=1,
-        )
-    q_yaw = quat_from_euler(0.0, 0.0, yaw_rad)
-    q = quat_normalize(quat_multiply(quat_conjugate(q_yaw), np.asarray(q_ned_from_gimbal, dtype=float)))
-    return GimbalDeviceAttitudeStatus(
-        int(send_time_boot_us), tuple(float(c) for c in q), ARDUPILOT_GIMBAL_FLAGS, gimbal_device_id=1
-    )
-
-
-class MavlinkConfigError(ConfigError):
-    """The MAVLink connection string or a vehicle option is invalid."""
 
 
 class MavlinkLinkError(IrtrackError):
@@ -394,86 +282,6 @@ def open_mavlink2(connection: str, sysid: int, compid: int):
     except Exception as exc:  # noqa: BLE001 - pyserial and friends raise their own types
         raise MavlinkLinkError(f"mavlink: cannot open {connection!r}: {exc}") from None
     return conn
-
-
-# --------------------------------------------------------------------------- state
-
-
-def _finite(name: str, value, lo: float = -math.inf, hi: float = math.inf) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise InputError(f"vehicle state {name} must be a number, got {value!r}") from None
-    if not math.isfinite(v) or not lo <= v <= hi:
-        raise InputError(f"vehicle state {name} must be finite in [{lo}, {hi}], got {value!r}")
-    return v
-
-
-def _vec(name: str, value, n: int) -> tuple[float, ...]:
-    try:
-        v = tuple(float(x) for x in value)
-    except (TypeError, ValueError):
-        v = ()
-    if len(v) != n or not all(math.isfinite(x) for x in v):
-        raise InputError(f"vehicle state {name} must be {n} finite numbers, got {value!r}")
-    return v
-
-
-def _quat(name: str, value) -> tuple[float, float, float, float]:
-    try:
-        q = check_unit_quat(np.asarray(value, dtype=float), f"vehicle state {name}")
-    except (FrameError, TypeError, ValueError) as exc:
-        raise InputError(f"vehicle state {name}: {exc}") from None
-    if q.shape != (4,):
-        raise InputError(f"vehicle state {name} must be one quaternion (w, x, y, z), got shape {q.shape}")
-    return tuple(float(x) for x in q)
-
-
-@dataclass(frozen=True)
-class VehicleState:
-    """One truth sample of the observer, as the simulator knows it.
-
-    time_boot_us: int, boot clock; lat_deg, lon_deg: WGS84; alt_amsl_m, alt_rel_m: metres;
-    v_ned_mps: (3,) NED and q_ned_from_body: (4,) w, x, y, z, both in the local level where the vehicle is (as an
-    autopilot reports them); body_rates_radps: (3,) FRD p, q, r; heading_rad: the heading (yaw), or NaN if unknown;
-    q_ned_from_gimbal: (4,) (the same local level) or None.
-    """
-
-    time_boot_us: int
-    lat_deg: float
-    lon_deg: float
-    alt_amsl_m: float
-    alt_rel_m: float
-    v_ned_mps: tuple[float, float, float]
-    q_ned_from_body: tuple[float, float, float, float]
-    body_rates_radps: tuple[float, float, float]
-    heading_rad: float
-    q_ned_from_gimbal: tuple[float, float, float, float] | None = None
-
-    def __post_init__(self) -> None:
-        t = self.time_boot_us
-        if isinstance(t, bool) or not isinstance(t, (int, np.integer)) or not 0 <= int(t) < 2**63:
-            raise InputError(f"vehicle state time_boot_us must be a non-negative integer, got {t!r}")
-        object.__setattr__(self, "time_boot_us", int(t))
-        object.__setattr__(self, "lat_deg", _finite("lat_deg", self.lat_deg, -90.0, 90.0))
-        object.__setattr__(self, "lon_deg", _finite("lon_deg", self.lon_deg, -180.0, 180.0))
-        alt_lim = INT32_MAX / 1000.0
-        object.__setattr__(self, "alt_amsl_m", _finite("alt_amsl_m", self.alt_amsl_m, -alt_lim, alt_lim))
-        object.__setattr__(self, "alt_rel_m", _finite("alt_rel_m", self.alt_rel_m, -alt_lim, alt_lim))
-        object.__setattr__(self, "v_ned_mps", _vec("v_ned_mps", self.v_ned_mps, 3))
-        object.__setattr__(self, "q_ned_from_body", _quat("q_ned_from_body", self.q_ned_from_body))
-        object.__setattr__(self, "body_rates_radps", _vec("body_rates_radps", self.body_rates_radps, 3))
-        h = self.heading_rad
-        h = math.nan if h is None else h
-        try:
-            h = float(h)
-        except (TypeError, ValueError):
-            raise InputError(f"vehicle state heading_rad must be a number or NaN, got {self.heading_rad!r}") from None
-        if math.isinf(h):
-            raise InputError(f"vehicle state heading_rad must be finite or NaN (unknown), got {h}")
-        object.__setattr__(self, "heading_rad", h)
-        if self.q_ned_from_gimbal is not None:
-            object.__setattr__(self, "q_ned_from_gimbal", _quat("q_gimbal", self.q_ned_from_gimbal))
 
 
 # --------------------------------------------------------------------------- vehicle
@@ -541,7 +349,7 @@ class MavlinkVehicle:
         }
         if self.gimballed:
             self._default_interval_us[MSG_GIMBAL_DEVICE_ATTITUDE_STATUS] = round(1e6 / gimbal_rate_hz)
-        self._default_interval_us.update(_GCS_STREAM_INTERVAL_US)
+        self._default_interval_us.update(GCS_STREAM_INTERVAL_US)
         self._params: dict[str, float] = dict(DEFAULT_PARAMS)
         self._params["MAV_SYS_ID"], self._params["MAV_COMP_ID"] = float(sysid), float(compid)
         self._home: VehicleState | None = None
@@ -674,37 +482,21 @@ class MavlinkVehicle:
         mav = self._conn.mav
         now = self._now_us
         state = self._state
-        if msg_id in _DATA_STREAMS:
+        if msg_id in DATA_STREAMS:
             if state is None:
                 return 0
             if msg_id == MSG_GIMBAL_DEVICE_ATTITUDE_STATUS and state.q_ned_from_gimbal is None:
                 return 0
-            if msg_id in _POSITION_STREAMS and self._no_gnss(state.time_boot_us):
+            if msg_id in POSITION_STREAMS and self._no_gnss(state.time_boot_us):
                 return 0
             if not forced and self._last_state_us_sent.get(msg_id) == state.time_boot_us:
                 return 0
             self._last_state_us_sent[msg_id] = state.time_boot_us
-        if msg_id in _NEEDS_STATE and state is None:
+        if msg_id in NEEDS_STATE and state is None:
             return 0
         try:
-            if msg_id == MSG_HEARTBEAT and self.guided:
-                if self._companion_heard and self._loiter_after_companion < 1:
-                    self._loiter_after_companion += 1  # this LOITER one reaches the companion listening
-                    mode = ARDUCOPTER_LOITER_MODE
-                else:
-                    mode = ARDUCOPTER_GUIDED_MODE if self.in_guided else ARDUCOPTER_LOITER_MODE
-                mav.send(
-                    Heartbeat(
-                        mavlink2.MAV_TYPE_QUADROTOR,
-                        mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA,
-                        ARDUCOPTER_BASE_MODE,
-                        mode,
-                    ).to_message()
-                )
-            elif msg_id == MSG_HEARTBEAT:
-                mav.send(
-                    Heartbeat(mavlink2.MAV_TYPE_QUADROTOR, mavlink2.MAV_AUTOPILOT_GENERIC, _BASE_MODE).to_message()
-                )
+            if msg_id == MSG_HEARTBEAT:
+                mav.send(heartbeat(self._custom_mode()).to_message())
             elif msg_id == MSG_SYSTEM_TIME:
                 mav.send(SystemTime(self._unix_at_boot_us + now, now).to_message())
             elif msg_id == MSG_ATTITUDE_QUATERNION:
@@ -714,12 +506,14 @@ class MavlinkVehicle:
             elif msg_id == MSG_GLOBAL_POSITION_INT:
                 mav.send(self._global_position_int(state).to_message())
             elif msg_id == MSG_LOCAL_POSITION_NED:
-                n_m, e_m, d_m = self._p_local_ned_m(state)
-                mav.local_position_ned_send(time_boot_ms_from_us(state.time_boot_us), n_m, e_m, d_m, *state.v_ned_mps)
+                mav.send(local_position_ned(state, self._home or state))  # home: the first state, stored before
             elif msg_id == MSG_GIMBAL_DEVICE_ATTITUDE_STATUS:
                 mav.send(self._gimbal_status(state).to_message())
-            elif not self._send_gcs_stream(msg_id, mav, now, state):  # pragma: no cover - streams fixed at construction
-                return 0
+            else:
+                msg = self._gcs_message(msg_id, now, state)
+                if msg is None:  # pragma: no cover - streams fixed at construction
+                    return 0
+                mav.send(msg)
         except OSError as exc:
             self._log_limited("tx_error", "mavlink send failed: %s", exc)
             self.counters["tx_error"] += 1
@@ -733,123 +527,52 @@ class MavlinkVehicle:
 
     def battery_remaining_pct(self, now_us: int) -> float:
         """The simulated battery's charge, %: linear drain from 100 % at boot."""
-        return max(100.0 - BATTERY_DRAIN_PCT_PER_S * now_us / 1e6, 0.0)
+        return battery_remaining_pct(now_us)
 
-    def _send_gcs_stream(self, msg_id: int, mav, now: int, state: VehicleState | None) -> bool:
-        """The messages a ground station reads of a whole vehicle (module docstring); False: not ours."""
-        pct = self.battery_remaining_pct(now)
-        cell_v = BATTERY_EMPTY_V + (BATTERY_FULL_V - BATTERY_EMPTY_V) * pct / 100.0
+    def _custom_mode(self) -> int | None:
+        """The heartbeat's ArduCopter mode with ``guided`` (None: the generic autopilot): LOITER until the companion
+        is heard and has been sent one more LOITER heartbeat, then GUIDED."""
+        if not self.guided:
+            return None
+        if self._companion_heard and self._loiter_after_companion < 1:
+            self._loiter_after_companion += 1  # this LOITER one reaches the companion listening
+            return ARDUCOPTER_LOITER_MODE
+        return ARDUCOPTER_GUIDED_MODE if self.in_guided else ARDUCOPTER_LOITER_MODE
+
+    def _gcs_message(self, msg_id: int, now: int, state: VehicleState | None):
+        """The message of a ground station's stream (module docstring), or None: not ours."""
         if msg_id == MSG_SYS_STATUS:
-            mav.sys_status_send(
-                _SENSORS,
-                _SENSORS,
-                _SENSORS,
-                250,
-                round(cell_v * BATTERY_CELLS * 1000),
-                round(BATTERY_CURRENT_A * 100),
-                round(pct),
-                0,
-                0,
-                0,
-                0,
-                0,
-                0,
-            )
-        elif msg_id == MSG_EXTENDED_SYS_STATE:
-            mav.extended_sys_state_send(mavlink2.MAV_VTOL_STATE_UNDEFINED, mavlink2.MAV_LANDED_STATE_IN_AIR)
-        elif msg_id == MSG_BATTERY_STATUS:
-            cells = [round(cell_v * 1000)] * BATTERY_CELLS + [UINT16_MAX] * (10 - BATTERY_CELLS)
-            used_mah = round(BATTERY_CURRENT_A * 1000 * now / 1e6 / 3600)
-            mav.battery_status_send(
-                0,
-                mavlink2.MAV_BATTERY_FUNCTION_ALL,
-                mavlink2.MAV_BATTERY_TYPE_LIPO,
-                INT16_MAX,
-                cells,
-                round(BATTERY_CURRENT_A * 100),
-                used_mah,
-                -1,
-                round(pct),
-                round(pct / BATTERY_DRAIN_PCT_PER_S),
-                mavlink2.MAV_BATTERY_CHARGE_STATE_OK,
-                [0, 0, 0, 0],
-                0,
-                0,
-            )
-        elif msg_id == MSG_GPS_RAW_INT:
-            gpi = self._global_position_int(state).to_message()  # the #33 position, quantised alike
-            lat, lon, alt_mm, vx, vy = gpi.lat, gpi.lon, gpi.alt, gpi.vx, gpi.vy
-            vel = min(round(math.hypot(vx, vy)), UINT16_MAX - 1)
-            cog = round(math.degrees(math.atan2(vy, vx)) % 360.0 * 100.0) % 36000 if vel > 0 else UINT16_MAX
+            return sys_status(now)
+        if msg_id == MSG_EXTENDED_SYS_STATE:
+            return extended_sys_state()
+        if msg_id == MSG_BATTERY_STATUS:
+            return battery_status(now)
+        if msg_id == MSG_AUTOPILOT_VERSION:
+            return autopilot_version()
+        if state is None:  # pragma: no cover - _send sends none of NEEDS_STATE without a state
+            return None
+        if msg_id == MSG_GPS_RAW_INT:
             no_fix = self._no_gnss(state.time_boot_us)
             fix = mavlink2.GPS_FIX_TYPE_RTK_FIXED if self.gnss_rtk else mavlink2.GPS_FIX_TYPE_3D_FIX
-            # without a fix the uncertainty is unknown (0, as onboard.io.mavlink_wire.GpsRawInt reads it); the
-            # position is then not to be used, whatever it says
-            h_acc_mm, v_acc_mm = (
-                (0, 0) if no_fix else (round(self.gnss_h_acc_m * 1000.0), round(self.gnss_v_acc_m * 1000.0))
-            )
-            mav.gps_raw_int_send(
+            gpi = self._global_position_int(state).to_message()  # the #33 position, quantised alike
+            return gps_raw_int(
                 self._unix_at_boot_us + state.time_boot_us,
-                mavlink2.GPS_FIX_TYPE_NO_FIX if no_fix else fix,
-                lat,
-                lon,
-                alt_mm,
-                UINT16_MAX if no_fix else 80,
-                UINT16_MAX if no_fix else 120,
-                # without a fix the speed and course are unknown as well (UINT16_MAX), their accuracy too (0)
-                UINT16_MAX if no_fix else vel,
-                UINT16_MAX if no_fix else cog,
-                0 if no_fix else 14,
-                alt_mm + round(GEOID_UNDULATION_M * 1000.0),
-                h_acc_mm,
-                v_acc_mm,
-                0 if no_fix else 200,
-                0,
-                0,
+                gpi,
+                None if no_fix else fix,
+                self.gnss_h_acc_m,
+                self.gnss_v_acc_m,
             )
-        elif msg_id == MSG_ATTITUDE:
-            roll, pitch, yaw = (float(a) for a in euler_from_quat(np.asarray(state.q_ned_from_body)))
-            p, q, r = state.body_rates_radps
-            mav.attitude_send(time_boot_ms_from_us(state.time_boot_us), roll, pitch, yaw, p, q, r)
-        elif msg_id == MSG_HOME_POSITION:
-            h = self._home
-            mav.home_position_send(
-                round(h.lat_deg * 1e7),
-                round(h.lon_deg * 1e7),
-                round((h.alt_amsl_m - h.alt_rel_m) * 1000.0),  # what every relative_alt is measured from
-                0.0,
-                0.0,
-                0.0,
-                [1.0, 0.0, 0.0, 0.0],
-                0.0,
-                0.0,
-                0.0,
-                self._unix_at_boot_us + now,
-            )
-        elif msg_id == MSG_AUTOPILOT_VERSION:
-            mav.autopilot_version_send(
-                _CAPABILITIES, 0x01000000, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0, 0x1A2B3C4D, [0] * 18
-            )
-        else:
-            return False
-        return True
+        if msg_id == MSG_ATTITUDE:
+            return attitude(state)
+        if msg_id == MSG_HOME_POSITION:
+            return home_position(self._home or state, self._unix_at_boot_us + now)
+        return None  # pragma: no cover - streams fixed at construction
 
     def _gimbal_status(self, s: VehicleState) -> GimbalDeviceAttitudeStatus:
         """GIMBAL_DEVICE_ATTITUDE_STATUS of the state in the configured frame (module docstring)."""
         return gimbal_device_attitude_status(
             s.time_boot_us, self._now_us, s.q_ned_from_gimbal, s.q_ned_from_body, self.gimbal_yaw_frame
         )
-
-    def _p_local_ned_m(self, s: VehicleState) -> tuple[float, float, float]:
-        """LOCAL_POSITION_NED's x, y, z of the state (module docstring): north and east on the plane tangent at home,
-        down = home's altitude - the state's, i.e. -relative_alt (as the autopilots' EKF origin height, no curvature
-        drop: 8 cm at 1 km from home, 2 m at 5 km, would set z apart from #33's relative_alt)."""
-        h = self._home or s  # home is the first state, stored before any state is sent
-        home_alt_m = h.alt_amsl_m - h.alt_rel_m
-        n_m, e_m, _ = ned_from_geodetic(
-            s.lat_deg, s.lon_deg, home_alt_m, GeodeticOrigin(h.lat_deg, h.lon_deg, home_alt_m)
-        )
-        return float(n_m), float(e_m), home_alt_m - s.alt_amsl_m
 
     def _global_position_int(self, s: VehicleState) -> GlobalPositionInt:
         """GLOBAL_POSITION_INT of the state, each velocity component saturated to the wire's int16 cm/s (logged)."""
@@ -1047,7 +770,7 @@ class MavlinkVehicle:
         state = self._state
         if msg_id is None:
             return mavlink2.MAV_RESULT_DENIED
-        if (msg_id in _DATA_STREAMS or msg_id in _NEEDS_STATE) and (
+        if (msg_id in DATA_STREAMS or msg_id in NEEDS_STATE) and (
             state is None or (msg_id == MSG_GIMBAL_DEVICE_ATTITUDE_STATUS and state.q_ned_from_gimbal is None)
         ):
             return mavlink2.MAV_RESULT_DENIED
