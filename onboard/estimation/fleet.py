@@ -110,6 +110,7 @@ __all__ = [
     "MIN_RESIDUAL_DOF",
     "VehicleNoise",
     "white_variance_rad2",
+    "modelled_cross_sigma_rad",
     "Ray",
     "FleetConfig",
     "ClosestApproach",
@@ -281,6 +282,19 @@ class Ray:
         object.__setattr__(self, "own_cov_ned_m2", c)
 
 
+def modelled_cross_sigma_rad(ray: Ray, noise: NoiseModel) -> np.ndarray:
+    """The angular 1-sigma across ``ray`` (2,), along ``ray.basis_ned``, that the solve models for it with its
+    vehicle's ``noise``: the white part of the published sigma (:func:`white_variance_rad2`) and the configured
+    attitude-bias prior ``s_b`` in quadrature.  An attitude error ``phi ~ N(0, s_b^2 I)`` turns the ray by
+    ``B [u]x phi``, ``s_b`` on each axis across it.  Where the published sigma already holds ``s_b`` (the daemon's
+    own prior, the fusion's default) it is the published sigma; where the fusion's prior is larger (a vehicle whose
+    attitude can be off by more than it says) it is the prior's.  The gates (:func:`closest_approach`,
+    :func:`ray_gate_chi2`, :func:`pair_crossing`) use it, so that a ray within its vehicle's prior pairs and joins
+    the target the solve would fit it to."""
+    s_b = noise.attitude_bias_sigma_rad
+    return np.sqrt(white_variance_rad2(ray.sigma_cross_rad, s_b) + s_b * s_b)
+
+
 @dataclass(frozen=True)
 class FleetConfig:
     """The fleet fusion's settings (units in the names); the verdict's thresholds and weak priors are the
@@ -364,7 +378,10 @@ def closest_approach(
     a: Ray, b: Ray, noise_a: NoiseModel, noise_b: NoiseModel, max_speed_mps: float = 30.0
 ) -> ClosestApproach | None:
     """The closest approach of rays ``a`` and ``b`` (lines ``c + s u``, s > 0), or None when they are
-    parallel to within their angular sigmas (no crossing to speak of) or meet behind either camera.
+    parallel to within their angular sigmas (no crossing to speak of) or meet behind either camera.  The angular
+    sigmas are those the solve models (:func:`modelled_cross_sigma_rad`: each vehicle's configured attitude-bias
+    prior in them), not only the published ones: a vehicle whose attitude is off by more than it publishes, but
+    within the prior the fusion is given for it, pairs.
 
     Lines ``c_a + s u_a`` and ``c_b + t u_b``: with ``w = c_a - c_b``, ``k = u_a . u_b``,
     ``s = (k (u_b . w) - u_a . w) / (1 - k^2)``, ``t = ((u_b . w) - k (u_a . w)) / (1 - k^2)`` (the normal
@@ -373,9 +390,10 @@ def closest_approach(
     position variances and ``max_speed^2 ((t_a - t_b)^2 + s_ta^2 + s_tb^2)`` (the target's motion between the
     two times and over their time sigmas)."""
     ua, ub = a.los_ned, b.los_ned
+    sa, sb = modelled_cross_sigma_rad(a, noise_a), modelled_cross_sigma_rad(b, noise_b)
     n = np.cross(ua, ub)
     sin_ab = float(np.linalg.norm(n))
-    min_angle = math.hypot(float(np.max(a.sigma_cross_rad)), float(np.max(b.sigma_cross_rad)))
+    min_angle = math.hypot(float(np.max(sa)), float(np.max(sb)))
     if sin_ab <= min_angle:
         return None
     n = n / sin_ab
@@ -391,8 +409,8 @@ def closest_approach(
     pb = b.p_cam_ned_m + t * ub
     gap = float(n @ (pa - pb))
     var = (
-        s * s * float(((a.basis_ned @ n) ** 2) @ (a.sigma_cross_rad**2))
-        + t * t * float(((b.basis_ned @ n) ** 2) @ (b.sigma_cross_rad**2))
+        s * s * float(((a.basis_ned @ n) ** 2) @ (sa**2))
+        + t * t * float(((b.basis_ned @ n) ** 2) @ (sb**2))
         + _camera_sigma_m(noise_a) ** 2
         + _camera_sigma_m(noise_b) ** 2
         + max_speed_mps**2 * ((a.t_s - b.t_s) ** 2 + a.time_sigma_s**2 + b.time_sigma_s**2)
@@ -759,13 +777,14 @@ def ray_gate_chi2(ray: Ray, p_ned_m: np.ndarray, cov_p_ned_m2: np.ndarray, noise
     """The squared Mahalanobis distance (2 dof) of the target at ``p_ned_m`` (covariance ``cov_p_ned_m2``)
     from ``ray``: ``z = B (p - c)``, ``S = B P B^T + r^2 diag(s_cross^2) + s_cam^2 I + diag((B v)^2) s_t^2``
     (the last with the target's velocity ``v_ned_mps``, when given, and the ray's time sigma); inf behind the
-    camera."""
+    camera.  ``s_cross``: the angular sigmas the solve models for the ray with its vehicle's ``noise``
+    (:func:`modelled_cross_sigma_rad`: its attitude-bias prior in them)."""
     d = p_ned_m - ray.p_cam_ned_m
     r = float(ray.los_ned @ d)
     if r <= 0:
         return math.inf
     z = ray.basis_ned @ d
-    S = ray.basis_ned @ cov_p_ned_m2 @ ray.basis_ned.T + np.diag((r * ray.sigma_cross_rad) ** 2)
+    S = ray.basis_ned @ cov_p_ned_m2 @ ray.basis_ned.T + np.diag((r * modelled_cross_sigma_rad(ray, noise)) ** 2)
     S += np.eye(2) * _camera_sigma_m(noise) ** 2
     if v_ned_mps is not None and ray.time_sigma_s > 0:
         S += np.diag((ray.basis_ned @ np.asarray(v_ned_mps, dtype=float)) ** 2) * ray.time_sigma_s**2
@@ -801,7 +820,8 @@ def pair_crossing(
     a: Ray, b: Ray, ca: ClosestApproach, noise_a: NoiseModel, noise_b: NoiseModel
 ) -> tuple[np.ndarray, np.ndarray]:
     """Where rays ``a`` and ``b`` cross, weighted, and its covariance (3,), (3, 3): each ray's information across
-    itself at its range (``A = B^T diag(1 / ((r s_cross)^2 + s_cam^2)) B``), the point that minimises both rays'
+    itself at its range (``A = B^T diag(1 / ((r s_cross)^2 + s_cam^2)) B``, ``s_cross`` as the solve models it:
+    :func:`modelled_cross_sigma_rad`), the point that minimises both rays'
     weighted cross-range offsets (``(A_a + A_b) x = A_a c_a + A_b c_b``) and the inverse of the summed information.
     Not ``ca.midpoint_ned_m``: halfway between the closest points carries half the far ray's cross-range error, which
     this covariance does not hold when the ranges differ.  Along a direction neither ray measures (near-parallel
@@ -809,7 +829,7 @@ def pair_crossing(
     info = np.zeros((3, 3))
     rhs = np.zeros(3)
     for ray, r, noise in ((a, ca.range_a_m, noise_a), (b, ca.range_b_m, noise_b)):
-        w = 1.0 / ((r * ray.sigma_cross_rad) ** 2 + _camera_sigma_m(noise) ** 2)
+        w = 1.0 / ((r * modelled_cross_sigma_rad(ray, noise)) ** 2 + _camera_sigma_m(noise) ** 2)
         A = ray.basis_ned.T @ (w[:, None] * ray.basis_ned)
         info += A
         rhs += A @ ray.p_cam_ned_m

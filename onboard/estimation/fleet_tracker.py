@@ -19,6 +19,11 @@ where it kept a ray out of a join or a pair; an object in a target leaves it, ``
 newest ray is ``vehicle_timeout_s`` older than the target's newest leaves the solution (and comes back
 with its next ray that gates); objects silent for ``member_timeout_s`` leave the target; a target with no
 object left is dropped.
+
+The gates take each ray's angular sigmas as the solve models them
+(:func:`~onboard.estimation.fleet.modelled_cross_sigma_rad`: the vehicle's configured attitude-bias prior in them),
+so a vehicle whose attitude is off by more than it publishes, but within the prior the fusion is given for it, pairs
+and stays.
 """
 
 from __future__ import annotations

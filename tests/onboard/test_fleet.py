@@ -23,6 +23,7 @@ from onboard.estimation.fleet import (
     VehicleNoise,
     closest_approach,
     fleet_verdict,
+    modelled_cross_sigma_rad,
     ray_gate_chi2,
     triangulate,
     white_variance_rad2,
@@ -508,14 +509,14 @@ F1_WHITE_RAD = math.hypot(0.3 / 764.7, math.radians(0.05))
 RTK_BIAS_RAD = math.radians(0.1)
 
 
-def _first_fused(noise, uav2_bias_rad, seed: int, frames: int = 3) -> list:
+def _first_fused(noise, uav2_bias_rad, seed: int, frames: int = 3, counter: RejectCounter | None = None) -> list:
     """The first fused points of a new F1 target, frame by frame as the fusion publishes them: (estimate, its
     position's NEES against the truth)."""
     rng = np.random.default_rng(seed)
     uav1 = SynthVehicle("uav1", *F1_UAV1, attitude_error_rad=tuple(rng.normal(0.0, RTK_BIAS_RAD, 3)))
     uav2_error = np.asarray(uav2_bias_rad) + rng.normal(0.0, RTK_BIAS_RAD, 3)
     uav2 = SynthVehicle("uav2", *F1_UAV2, attitude_error_rad=tuple(uav2_error))
-    tracker = FleetTracker(FleetConfig(), noise)
+    tracker = FleetTracker(FleetConfig(), noise, counter)
     out = []
     for k in range(frames):
         t = k / 30
@@ -558,3 +559,58 @@ def test_the_first_fused_points_of_a_vehicle_off_by_1_deg_carry_its_configured_p
         for est, nees in first:
             assert not est.observable
             assert nees < chi2.ppf(0.999, 3)
+
+
+# --------------------------------------------------------------------------- the gates and a vehicle's prior
+
+UAV2_PRIOR_1_DEG = VehicleNoise(
+    RTK_PRIOR, {"uav2": dataclasses.replace(RTK_PRIOR, attitude_bias_sigma_rad=math.radians(1.0))}
+)
+
+
+@pytest.mark.parametrize(
+    "direction",
+    [(0.0, 1.0, 0.0), (1.0, 0.0, 0.0), (0.0, 0.0, 1.0)],
+    ids=["elevation", "roll", "yaw"],
+)
+def test_a_vehicle_off_by_1_deg_within_its_configured_prior_fuses_on_every_frame(direction):
+    """uav2's attitude off by 1 deg, its prior configured 1 deg: the pairing gate takes that prior as the solve does,
+    so its rays pair on the first frame and every later one fuses both vehicles, none called observable (1 deg at
+    625 m over 290 m is ~5 % of range) and each holding the truth.  The gate used to take only the published 0.11
+    deg: an elevation error (rotation about east, the rays looking north) opens a vertical gap between the rays that
+    no gate allowed, and 2 of 10 seeds paired at all."""
+    for seed in range(3):
+        counter = RejectCounter()
+        fused = _first_fused(UAV2_PRIOR_1_DEG, math.radians(1.0) * np.asarray(direction), seed, 30, counter)
+        two = [(est, nees) for est, nees in fused if len(est.contributions) == 2]
+        assert len(two) == 30, f"seed {seed}: {len(two)} of 30 frames fused both vehicles"
+        for est, nees in two:
+            assert not est.observable
+            assert nees < chi2.ppf(0.999, 3)
+
+
+def test_where_the_published_sigma_holds_the_prior_the_gates_are_the_published_sigmas():
+    """Nominally (RTK: the daemon publishes its 0.1 deg bias in its sigma, the fusion's default prior 0.1 deg) the
+    gates are what they were; a larger prior raises the ray's sigma to the solve's, white part plus prior."""
+    rng = np.random.default_rng(0)
+    uav1 = SynthVehicle("uav1", *F1_UAV1)
+    los = measure(uav1, F1_TARGET, 0.0, rng, F1_WHITE_RAD, RTK_BIAS_RAD, 0.02)
+    ray = ray_of(los, "uav1", 0.0)
+    np.testing.assert_allclose(modelled_cross_sigma_rad(ray, RTK_PRIOR), ray.sigma_cross_rad, rtol=1e-12)
+    np.testing.assert_allclose(modelled_cross_sigma_rad(ray, EXACT), ray.sigma_cross_rad, rtol=1e-12)
+    one_deg = UAV2_PRIOR_1_DEG["uav2"]
+    expected = np.sqrt(white_variance_rad2(ray.sigma_cross_rad, math.radians(1.0)) + math.radians(1.0) ** 2)
+    np.testing.assert_allclose(modelled_cross_sigma_rad(ray, one_deg), expected, rtol=1e-12)
+    assert np.all(modelled_cross_sigma_rad(ray, one_deg) >= math.radians(1.0))
+
+
+def test_two_targets_are_told_apart_with_a_vehicles_prior_raised_to_1_deg():
+    rng = np.random.default_rng(3)
+    uav1 = SynthVehicle("uav1", (0.0, -120.0, -100.0), (10.0, 0.0, 0.0))
+    uav2 = SynthVehicle("uav2", (0.0, 120.0, -100.0), (10.0, 0.0, 0.0), attitude_error_rad=(0.0, 0.01, 0.0))
+    targets = [SynthTarget((900.0, -150.0, -120.0), (-5.0, 3.0, 0.0)), SynthTarget((700.0, 200.0, -60.0), (2.0, -4, 0))]
+    ids = {("uav1", 0): 11, ("uav1", 1): 12, ("uav2", 0): 22, ("uav2", 1): 21}
+    tracker = FleetTracker(FleetConfig(), UAV2_PRIOR_1_DEG)
+    _feed(tracker, [uav1, uav2], targets, np.arange(0, 1.5, 1 / 30), rng, ids)
+    groups = sorted(sorted(tracker.members(t)) for t in tracker.targets)
+    assert groups == [[("uav1", 11), ("uav2", 22)], [("uav1", 12), ("uav2", 21)]]
