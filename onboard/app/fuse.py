@@ -53,9 +53,12 @@ redelivered or replayed), ``inbox_full`` (a flood beyond ``INBOX_MAX``), ``recei
 a way no check above names: counted, the loop goes on); ``no_line_of_sight`` (a track without a target),
 ``ray_not_measured`` (a line of sight whose track says ``measurement_valid`` false: a coasting tracker's prediction,
 not a measurement; a track without the key is read as false, as the schema's reader does), ``ray_of_ended_object``
-(a late ray of an object its vehicle's track has left) and the tracker's events are counted at DEBUG level.  A frame
-refused as stale or future, or held as a stamp jump, is no evidence about its vehicle's clock: the clock check
-(below) never sees it.  The status lists refusals under ``rejected`` and events (:data:`EVENTS`) under ``events``.
+(a late ray of an object its vehicle's track has left) and the tracker's events are counted at DEBUG level, but
+``ray_unpaired`` (WARNING: a ray of an object that has been in no fleet target for ``FleetConfig.unpaired_after_s``,
+1 s: its vehicle's lines of sight are taken and fused into nothing; the line names the vehicle and the nearest
+miss).  A frame refused as stale or future, or held as a stamp jump, is no evidence about its vehicle's clock: the
+clock check (below) never sees it.  The status lists refusals under ``rejected`` and events (:data:`EVENTS`) under
+``events``.
 
 Name clash: when the tracks under one name interleave two streams (``seq`` / ``time_boot_us`` back and forth,
 the camera jumping farther than a vehicle flies: :class:`~onboard.io.fleet_wire.StreamCheck`), ``name_clash`` is
@@ -216,6 +219,7 @@ EVENTS = frozenset(
         "target_dropped",
         "object_left",
         "own_estimate_disagrees",
+        "ray_unpaired",
     }
 )
 

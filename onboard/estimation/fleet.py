@@ -307,7 +307,9 @@ class FleetConfig:
     over their time difference.  ``q_m2ps3``: the constant-velocity model's white-acceleration PSD.
     ``min_range_m``: ranges are clamped to at least this in the noise model.  ``max_defer_s``: a target is
     due (:meth:`~onboard.estimation.fleet_tracker.FleetTracker.due`) once every live vehicle sent a ray newer than its last solve, or its newest
-    ray is this much newer than that (fleet clock)."""
+    ray is this much newer than that (fleet clock).  ``unpaired_after_s``: an object in no target this long (fleet
+    clock, from its first ray in none) has each further ray counted ``ray_unpaired`` (its lines of sight are fused
+    into nothing)."""
 
     window_s: float = 1.0
     vehicle_timeout_s: float = 0.3
@@ -318,6 +320,9 @@ class FleetConfig:
     min_range_m: float = 10.0
     iterations: int = 20  # Gauss-Newton cap: warm-started solves take 2-3; a poorly crossing pair from a far seed ~12
     max_defer_s: float = 0.05
+    # a new target pairs within a frame or two of both vehicles' first rays; a second of frames in no target is no
+    # start-up but a vehicle whose rays meet no other's (its attitude off beyond its prior, or an object only it sees)
+    unpaired_after_s: float = 1.0
     # the single-vehicle verdict's thresholds, priors and range floor, with a tighter range-sigma threshold:
     # triangulation's linearised covariance is consistent where rays cross well (mean NEES 3.03 over random
     # 2-4 vehicle geometries with RTK-class errors where the range sigma is below 2 % of range, 3.36 up to 5 %:
@@ -334,6 +339,7 @@ class FleetConfig:
                 "pair_max_dt_s",
                 "min_range_m",
                 "max_defer_s",
+                "unpaired_after_s",
             ),
             is_positive_number,
             ConfigError,

@@ -23,7 +23,10 @@ object left is dropped.
 The gates take each ray's angular sigmas as the solve models them
 (:func:`~onboard.estimation.fleet.modelled_cross_sigma_rad`: the vehicle's configured attitude-bias prior in them),
 so a vehicle whose attitude is off by more than it publishes, but within the prior the fusion is given for it, pairs
-and stays.
+and stays.  An object whose rays meet no other vehicle's and no target's gate for ``unpaired_after_s`` (its attitude
+off beyond its prior, its clock off, or an object only it sees) is fused into nothing: each further ray is counted
+``ray_unpaired``, the WARNING naming the vehicle, how long and the nearest miss (the closest other vehicle's ray and
+target, in their gates' chi-square).
 """
 
 from __future__ import annotations
@@ -76,7 +79,8 @@ class FleetTracker:
     Step methods: :meth:`add` takes one ray and returns the id of the target it went to (None: kept
     unassigned, or refused and counted); :meth:`solve` estimates one target from its rays now.  Refused
     rays are counted in ``counter`` by reason: ``ray_stale`` (older than the fleet's clock ``now_s`` by more
-    than the window), ``ray_out_of_order`` (not newer than the same object's last ray).  Events counted
+    than the window), ``ray_out_of_order`` (not newer than the same object's last ray); kept but in no target for
+    ``unpaired_after_s``: ``ray_unpaired`` (module docstring).  Events counted
     at DEBUG level: ``target_created``, ``target_dropped``, ``object_left`` (failed its target's gate, went
     silent or its vehicle was withdrawn, :meth:`withdraw`).
 
@@ -101,6 +105,10 @@ class FleetTracker:
         self._targets: dict[int, _Target] = {}
         self._next_id = 1
         self._vehicle_newest_s: dict[str, float] = {}
+        # each object in no target: the time of its first ray in none (fleet clock)
+        self._unpaired_since: dict[tuple[str, int], float] = {}
+        # the nearest miss of the last association that found nothing: (chi2, what) for a target and for a pairing
+        self._miss: tuple[tuple[float, str], tuple[float, str]] = ((math.inf, ""), (math.inf, ""))
         self.now_s = -math.inf
 
     def _fleet_now(self) -> float:
@@ -161,7 +169,33 @@ class FleetTracker:
             self._leave(key, why)
             buf.clear()
             buf.append(ray)
-        return self._associate(key, ray)
+        tid = self._associate(key, ray)
+        if tid is None:
+            self._note_unpaired(key, ray)
+        return tid
+
+    def _note_unpaired(self, key: tuple[str, int], ray: Ray) -> None:
+        """Count ``ray`` ``ray_unpaired`` once its object has been in no target for ``unpaired_after_s``: nothing
+        else would say that a vehicle's lines of sight are taken and fused into nothing."""
+        since = self._unpaired_since.setdefault(key, ray.t_s)
+        alone_s = ray.t_s - since
+        if alone_s < self.config.unpaired_after_s:
+            return
+        (t_chi2, t_what), (p_chi2, p_what) = self._miss
+        nearest = []
+        if t_what:
+            nearest.append(f"{t_what} at chi2 {t_chi2:.3g} (gate {BEARING_GATE_CHI2:g})")
+        if p_what:
+            at = f" at chi2 {p_chi2:.3g} (gate {CLOSEST_APPROACH_GATE_CHI2:g})" if math.isfinite(p_chi2) else ""
+            nearest.append(p_what + at)
+        elif not nearest:
+            nearest.append(f"no other vehicle's ray in no target within {self.config.pair_max_dt_s:g} s, and no target")
+        self.counter.count(
+            "ray_unpaired",
+            f"{key[0]} object {key[1]}: in no fleet target for {alone_s:.1f} s, its lines of sight fused into "
+            f"nothing; nearest: {'; '.join(nearest)}; its attitude may be off by more than its prior "
+            "(--vehicle-noise NAME:attitude_bias_deg=...), its clock off, or no other vehicle sees its object",
+        )
 
     def withdraw(self, vehicle: str, why: str) -> None:
         """Take every object of ``vehicle`` out of its target and forget its rays (a name shared by two
@@ -175,6 +209,7 @@ class FleetTracker:
         withdrawn, or its vehicle said it is done with it (a daemon's track moved to another object id, so its target
         need not wait for its silence before the vehicle's next object may join)."""
         key = (vehicle, object_id)
+        self._unpaired_since.pop(key, None)
         if key in self._rays:
             self._leave(key, why)
             del self._rays[key]
@@ -211,6 +246,8 @@ class FleetTracker:
         cfg = self.config
         noise = self._noise(ray.vehicle)
         best, best_chi2 = None, BEARING_GATE_CHI2
+        near_target: tuple[float, str] = (math.inf, "")
+        near_pair: tuple[float, str] = (math.inf, "")
         for target in list(self._targets.values()):
             if ray.vehicle in self._live_vehicles(target, ray.t_s):
                 continue
@@ -220,6 +257,8 @@ class FleetTracker:
                 continue
             p, P = target.last.propagated(ray.t_s)
             c2 = ray_gate_chi2(ray, p, P, noise, target.last.v_ned_mps)
+            if c2 < near_target[0]:
+                near_target = (c2, f"target {target.target_id}")
             if c2 > best_chi2:
                 continue
             if self._own_disagrees(ray, p, P, target.last.v_ned_mps):
@@ -233,6 +272,7 @@ class FleetTracker:
         if best is not None:
             best.members.add(key)
             self._owner[key] = best.target_id
+            self._unpaired_since.pop(key, None)
             return best.target_id
         partner, pair, pair_chi2 = None, None, CLOSEST_APPROACH_GATE_CHI2
         for other, buf in self._rays.items():
@@ -242,7 +282,13 @@ class FleetTracker:
             if abs(cand.t_s - ray.t_s) > cfg.pair_max_dt_s:
                 continue
             ca = closest_approach(ray, cand, noise, self._noise(other[0]), cfg.max_speed_mps)
-            if ca is None or ca.chi2 > pair_chi2:
+            if ca is None:
+                if not near_pair[1]:
+                    near_pair = (math.inf, f"{other[0]} object {other[1]}'s ray, parallel or crossing behind a camera")
+                continue
+            if ca.chi2 < near_pair[0]:
+                near_pair = (ca.chi2, f"{other[0]} object {other[1]}'s ray")
+            if ca.chi2 > pair_chi2:
                 continue
             if ray.own_p_ned_m is not None or cand.own_p_ned_m is not None:
                 x, P = pair_crossing(ray, cand, ca, noise, self._noise(other[0]))
@@ -256,11 +302,14 @@ class FleetTracker:
                     continue
             partner, pair, pair_chi2 = other, ca, ca.chi2
         if partner is None or pair is None:
+            self._miss = (near_target, near_pair)
             return None
         tid = self._next_id
         self._next_id += 1
         self._targets[tid] = _Target(tid, {key, partner}, pair.midpoint_ned_m, ray.t_s)
         self._owner[key] = self._owner[partner] = tid
+        self._unpaired_since.pop(key, None)
+        self._unpaired_since.pop(partner, None)
         self.counter.count("target_created", f"target {tid} from {key} and {partner}", level=10)
         return tid
 

@@ -4,6 +4,7 @@ consistency under the noise model, honesty without geometry, the issue's two-dro
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 
 import numpy as np
@@ -587,6 +588,7 @@ def test_a_vehicle_off_by_1_deg_within_its_configured_prior_fuses_on_every_frame
         for est, nees in two:
             assert not est.observable
             assert nees < chi2.ppf(0.999, 3)
+        assert counter["ray_unpaired"] == 0
 
 
 def test_where_the_published_sigma_holds_the_prior_the_gates_are_the_published_sigmas():
@@ -614,3 +616,32 @@ def test_two_targets_are_told_apart_with_a_vehicles_prior_raised_to_1_deg():
     _feed(tracker, [uav1, uav2], targets, np.arange(0, 1.5, 1 / 30), rng, ids)
     groups = sorted(sorted(tracker.members(t)) for t in tracker.targets)
     assert groups == [[("uav1", 11), ("uav2", 22)], [("uav1", 12), ("uav2", 21)]]
+
+
+def test_a_vehicle_whose_rays_meet_no_other_vehicles_is_counted_and_named(caplog):
+    """uav1 and uav2 track the F1 target; uav3 tracks an object only it sees.  Its rays pair with nobody's: past
+    ``unpaired_after_s`` each is counted ``ray_unpaired``, a WARNING naming it and the nearest miss; the pair's
+    rays are never counted.  Nothing used to say that a vehicle's lines of sight went into no fleet track."""
+    rng = np.random.default_rng(5)
+    uav1 = SynthVehicle("uav1", *F1_UAV1)
+    uav2 = SynthVehicle("uav2", *F1_UAV2)
+    uav3 = SynthVehicle("uav3", (-100.0, 0.0, -120.0), (3.0, 0.0, 0.0))
+    other = SynthTarget((200.0, -600.0, -90.0), (0.0, 5.0, 0.0))
+    counter = RejectCounter()
+    tracker = FleetTracker(FleetConfig(), RTK_PRIOR, counter)
+    frames = 60
+    with caplog.at_level(logging.WARNING):
+        for k in range(frames):
+            t = k / 30
+            for v, tgt in ((uav1, F1_TARGET), (uav2, F1_TARGET), (uav3, other)):
+                tracker.add(ray_of(measure(v, tgt, t, rng, F1_WHITE_RAD, RTK_BIAS_RAD, 0.02), v.name, t, 7))
+            for tid in tracker.targets:
+                if tracker.due(tid):
+                    tracker.solve(tid)
+    (tid,) = tracker.targets
+    assert tracker.members(tid) == {("uav1", 7), ("uav2", 7)}
+    # uav3's rays from 1 s after its first: frames 30-59
+    assert counter["ray_unpaired"] == frames - round(FleetConfig().unpaired_after_s * 30)
+    warned = [r.getMessage() for r in caplog.records if r.getMessage().startswith("ray_unpaired")]
+    assert warned and all("uav3 object 7" in m for m in warned)
+    assert f"target {tid} at chi2" in warned[0]

@@ -1041,3 +1041,28 @@ def test_ctrl_c_while_starting_is_one_line_and_130(monkeypatch, capsys):
     monkeypatch.setattr(fuse, "warm_up", interrupted)
     assert fuse.main(["--seconds", "1"]) == 130
     assert capsys.readouterr().err == "interrupted: no fusion running yet, or its session closing\n"
+
+
+@pytest.mark.parametrize("uav2_prior", [None, "uav2:attitude_bias_deg=1"], ids=["default-prior", "its-own-prior"])
+def test_a_vehicle_whose_elevation_is_1_deg_off_fuses_within_its_prior_and_is_named_beyond_it(uav2_prior):
+    """uav2's attitude 1 deg off about east (its elevation, looking north): with its prior configured at 1 deg both
+    vehicles fuse on every frame, unobservable; with the default 0.1 deg its rays pair with none of uav1's, and the
+    status says so (``ray_unpaired`` under ``events``) instead of counting nothing while nothing is fused."""
+    args = build_parser().parse_args(["--vehicle-noise", uav2_prior] if uav2_prior else [])
+    counter = RejectCounter()
+    fusion = Fusion(FleetTracker(FleetConfig(), noise_models(args), counter), CommonClock(), counter=counter)
+    off = SynthVehicle("uav2", UAV2.p0_ned_m, UAV2.v_ned_mps, attitude_error_rad=(0.0, np.radians(1.0), 0.0))
+    rng = np.random.default_rng(2)
+    fleet = []
+    for k, t in enumerate(np.arange(0.0, 2.0, 1 / 30)):
+        for v in (UAV1, off):
+            fusion.receive(f"irtrack/{v.name}/track", payload_of(v, t, rng, k), T0_UNIX_S + t + 0.005)
+        fleet += [msg for key, msg in fusion.flush() if key == fleet_track_key()]
+    st = fusion.status(T0_UNIX_S + 2.0)
+    if uav2_prior:
+        both = [m for m in fleet if len(m["vehicles"]) == 2]
+        assert len(both) >= 59 and not any(m["observable"] for m in both)
+        assert "ray_unpaired" not in st["events"]
+    else:
+        assert fleet == [] and st["rays"] == 120
+        assert st["events"]["ray_unpaired"] >= 59 and "ray_unpaired" in EVENTS
