@@ -853,7 +853,10 @@ def carried_with_bearing(last: FleetEstimate, ray: Ray, noise: NoiseModel, confi
     Prediction: ``p = p_0 + v dt``, ``P = [I dt I] Cov(p, v) [I dt I]^T + q |dt|^3 / 3 I``, ``V = Cov(v) +
     q |dt| I`` (white acceleration, the constant-velocity model's).  Update: the Kalman update with the
     linear measurement "the target is on the ray": ``z = B (p - c) = 0`` with ``R = diag((r s_cross)^2) +
-    s_cam^2 I`` (as :meth:`onboard.estimation.sliding.TrackEstimate.with_bearing`), Joseph form.  The range
+    s_cam^2 I`` (as :meth:`onboard.estimation.sliding.TrackEstimate.with_bearing`), Joseph form, ``s_cross`` the
+    angular sigmas the solve models for the ray (:func:`modelled_cross_sigma_rad`: its vehicle's attitude-bias prior
+    in them; with the published sigmas alone a lone vehicle off by its larger prior pulled the estimate onto its
+    ray, confidently).  The range
     stays the prediction's and its uncertainty grows; the verdict (one vehicle) calls it unobservable."""
     dt = ray.t_s - last.t_s
     F = np.hstack([np.eye(3), dt * np.eye(3)])
@@ -864,7 +867,7 @@ def carried_with_bearing(last: FleetEstimate, ray: Ray, noise: NoiseModel, confi
     d = p - ray.p_cam_ned_m
     r = max(float(ray.los_ned @ d), config.min_range_m)
     B = ray.basis_ned
-    R = np.diag((r * ray.sigma_cross_rad) ** 2 + (B @ last.v_ned_mps) ** 2 * ray.time_sigma_s**2)
+    R = np.diag((r * modelled_cross_sigma_rad(ray, noise)) ** 2 + (B @ last.v_ned_mps) ** 2 * ray.time_sigma_s**2)
     R += np.eye(2) * _camera_sigma_m(noise) ** 2
     S = B @ P @ B.T + R
     K = np.linalg.solve(S, B @ P).T  # P B^T S^-1
