@@ -3,7 +3,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.irtrack-installed
 
-.PHONY: demo test lint bench venv clean
+.PHONY: demo test lint bench venv clean bytecode
 
 # The pipeline is single-threaded by design; multi-threaded BLAS on small matrices only fights the
 # other processes for the two cores (a MAP solve went from 0.9 s to 8.5 s under load with threads).
@@ -18,8 +18,15 @@ $(STAMP): pyproject.toml scripts/install.sh
 
 venv: $(STAMP)
 
+# Our own modules compiled once, before the many processes the demo and the tests start: where the environment
+# sets PYTHONDONTWRITEBYTECODE (this machine's does) no import writes a .pyc, so every daemon, simulator and CLI
+# child compiled onboard/ and groundsim/ again (~0.5 s of CPU each; the subprocess-heavy tests took ~15 % less
+# CPU with them compiled). A stale .pyc is never used: Python checks each against its source.
+bytecode: $(STAMP)
+	$(PY) -m compileall -q -j 0 onboard groundsim bench
+
 # make demo LIVE_VIEW=8765: Foxglove's live view of the daemon on ws://127.0.0.1:8765
-demo: $(STAMP)
+demo: $(STAMP) bytecode
 	$(PY) -m groundsim demo $(if $(LIVE_VIEW),--live-view $(LIVE_VIEW))
 
 # Lint and types first (seconds): ruff over the tree (lint + format check), mypy over onboard.
@@ -33,7 +40,7 @@ lint: $(STAMP)
 # Two pytest-xdist workers, one per core: the tests that start processes run on one of them, one at a time as in a
 # serial run, while the other runs the in-process tests (tests/conftest.py says why; docs/performance.md the times).
 # The 15 slowest tests are listed at the end, to keep the whole suite within 8 minutes on a fresh clone in sight.
-test: lint
+test: lint bytecode
 	@IRTRACK_NO_SKIPS=1 $(PY) -m pytest -n 2 --dist loadgroup --durations=15; rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "make test: NO TESTS RAN (pytest exit 5)"; exit 0; fi; \
 	exit $$rc
