@@ -46,8 +46,19 @@ class ObjectChain:
         self._R: np.ndarray | None = None
         self._last_primary: int | None = None
         self._consumed: tuple | None = None  # (frame, its update) a refused selection measured
+        # (frame, its update) the last selection measured: a second request decided on the same frame (a double
+        # click within a frame period, a click then a box) selects on that measurement instead of measuring the frame
+        # again, which the tracker would take for a frozen frame (every track predicted one step more, coasting)
+        self._measured: tuple | None = None
+
+    @property
+    def holding(self) -> bool:
+        """True after :meth:`stop` in auto mode until the next selection (no automatic choice meanwhile), as
+        :attr:`TargetTracker.holding`."""
+        return self.mode == "auto" and self.objects.mode == "operator"
 
     def update(self, image: np.ndarray, R_ned_from_cam: np.ndarray | None = None, time_boot_us: int | None = None):
+        self._measured = None
         consumed, self._consumed = self._consumed, None
         if consumed is not None and consumed[0] is image:
             return consumed[1]  # measured by a refused selection just now (select_point)
@@ -109,7 +120,11 @@ class ObjectChain:
         tracks are predicted with the last frame's rotation, and an operator clicks while the gimbal slews), then
         make the object nearest (u, v) within ``radius_px`` (and, given ``rect_px``, inside that box) the primary;
         its TrackUpdate, or None (nothing there: the selection is unchanged)."""
-        upd = self.update(image, R_ned_from_cam, time_boot_us)
+        if self._measured is not None and self._measured[0] is image:
+            upd = self._measured[1]  # a second request on this frame: measured by the first
+        else:
+            upd = self.update(image, R_ned_from_cam, time_boot_us)
+            self._measured = (image, upd)
         sel = self.objects.select_point(u_px, v_px, radius_px, rect_px)
         if sel is None or self.last_objects is None:
             # the caller then tracks the frame as usual (a refused selection leaves the single chain's tracker

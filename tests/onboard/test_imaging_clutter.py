@@ -335,6 +335,44 @@ def test_a_box_selects_only_an_object_inside_it():
     assert sel is not None and sel.track_id != first
 
 
+def test_object_chain_selections_on_one_frame_measure_it_once_and_a_stop_in_auto_mode_is_said_to_hold():
+    """Two selections decided on one frame (a double click within a frame period) measured the frame twice: the
+    second pass read as a frozen frame, every track coasted and the frame count jumped by two.  The selection frame
+    is reported from the object's track (measured before it was selected: not fit for 3-D, a TrackUpdate without
+    a detection, hence coasting).  After a stop in auto mode the chain holds (no automatic choice until the next selection), which the status reads as ``holding``."""
+    from types import SimpleNamespace
+
+    from onboard.app.config import build_config
+    from onboard.app.status_sections import camera_section
+    from onboard.imaging.objects_chain import ObjectChain
+
+    rng = np.random.default_rng(9)
+    chain = ObjectChain(K)
+    for k in range(20):
+        near, far = _near_far(k)
+        upd = chain.update(_frame(rng, [near, far]), np.eye(3))
+    first, index = upd.track_id, chain.last_objects.frame_index
+    frame = _frame(rng, [near, far])
+    sel = chain.select_point(frame, far[0], far[1], 5.0, R_ned_from_cam=np.eye(3))
+    assert sel is not None and sel.track_id != first
+    assert not sel.measurement_valid
+    again = chain.select_point(frame, near[0], near[1], 5.0, R_ned_from_cam=np.eye(3))  # the same frame
+    assert again is not None and again.track_id == first
+    assert chain.last_objects.frame_index == index + 1
+    assert {o.state for o in chain.last_objects.objects} == {"confirmed"}  # nothing coasted
+
+    assert not chain.holding
+    chain.stop()
+    upd = chain.update(_frame(rng, [near, far]), np.eye(3))
+    assert chain.holding and upd.track_id is None
+    pipeline = SimpleNamespace(tracker=chain, last_selection=None)
+    status = camera_section(SimpleNamespace(status=dict), build_config({}), pipeline)
+    assert status["tracker_mode"] == "auto" and status["tracker_holding"] is True
+    assert chain.select_point(_frame(rng, [near, far]), far[0], far[1], 5.0, R_ned_from_cam=np.eye(3)) is not None
+    assert not chain.holding  # a selection ends the hold
+    assert not ObjectChain(K, mode="operator").holding  # operator mode waits by design: no hold to report
+
+
 def test_objects_message_carries_every_confirmed_object_as_json():
     import json
 
