@@ -106,6 +106,23 @@ def test_compare_within_sigma_takes_both_estimates_covariances():
     assert (res.compared, res.beyond) == (2, 1) and res.max_sigma == pytest.approx(20.0 / math.sqrt(2.0))
 
 
+def test_a_replay_that_tracks_another_object_differs_however_wide_the_covariances():
+    """An operator's selection is not replayed: the recording's track moved to another object (a new track_id)
+    while the replay stayed on the first.  Two unobservable estimates of targets 350 m apart were within each
+    other's 3 sigma, and a worker's recording compared 'within sigma' on every frame; a frame tracking another
+    object is now counted apart, not compared, and is a difference whatever the worker."""
+    from onboard.app.replay import beyond_a_workers_sigma
+
+    wide = [[1e5, 0.0, 0.0], [0.0, 1e5, 0.0], [0.0, 0.0, 1e5]]  # ~316 m a side: unobservable
+    recorded = [{**_track(k, [0.0, 0.0, 0.0], wide), "track_id": 3 if k < 3 else 8} for k in range(1, 6)]
+    replayed = [
+        {**_track(k, [350.0, 0.0, 0.0] if k >= 3 else [0.0, 0.0, 0.0], wide), "track_id": 3} for k in range(1, 6)
+    ]
+    res = compare_within_sigma(recorded, replayed)
+    assert (res.compared, res.other_object, res.beyond) == (2, 3, 0)
+    assert beyond_a_workers_sigma(res)
+
+
 def test_a_workers_recording_differs_only_beyond_what_its_timing_explains():
     """A few tenths of a per cent of the positions a little beyond 3 sigma are chance (a newcomer's recording of the
     shipped flow: 3 of 691, at most 3.7 sigma); over 1 % beyond, or one past 6 sigma, is a difference."""

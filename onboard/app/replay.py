@@ -33,7 +33,8 @@ the ground side's: ``python -m groundsim report FILE.mcap``.
 ``--compare`` is a check: it exits 3 when the replay is not the recording's.  With a recording of the inline
 estimator that is any frame whose track differs in any field (floats bit for bit; the UTC stamps a replay cannot
 make aside), any frame in one of the two only, and any frame of objects that differs or is in one only.  With a
-worker's recording, whose estimates no replay gives bit for bit, it is any frame in one only, any 3-D position
+worker's recording, whose estimates no replay gives bit for bit, it is any frame in one only, any frame whose
+track follows another object (``track_id``: an operator's selection, which is not replayed, shows so), any 3-D position
 beyond ``SIGMA_GATE`` sigmas of the two covariances together and any frame of objects that differs or is in one only
 (the image chain does not depend on the estimator's timing).
 
@@ -592,6 +593,10 @@ class SigmaComparison:
     max_sigma: float  # the largest such distance (0 when none compared)
     position_only_one: int  # matched frames where one of the two has a position and the other not
     gate_sigma: float
+    # matched frames whose track follows another object (track_id) in the replay: not compared, a difference
+    # whatever the worker (the image chain does not depend on the estimator's timing; an operator's selection,
+    # which a replay does not make again, is one cause)
+    other_object: int = 0
 
 
 def beyond_a_workers_sigma(within: SigmaComparison) -> bool:
@@ -600,7 +605,8 @@ def beyond_a_workers_sigma(within: SigmaComparison) -> bool:
     frames with a position in one of them only than :data:`WORKER_ONLY_ONE_MAX_COUNT` and that share."""
     positions = within.compared + within.position_only_one
     only_one = within.position_only_one > max(WORKER_ONLY_ONE_MAX_COUNT, WORKER_BEYOND_SHARE * positions)
-    return only_one or within.beyond > WORKER_BEYOND_SHARE * within.compared or within.max_sigma > WORKER_GROSS_SIGMA
+    beyond = within.beyond > WORKER_BEYOND_SHARE * within.compared or within.max_sigma > WORKER_GROSS_SIGMA
+    return only_one or beyond or within.other_object > 0
 
 
 def compare_within_sigma(recorded: list, replayed: list, gate_sigma: float = SIGMA_GATE) -> SigmaComparison:
@@ -613,9 +619,13 @@ def compare_within_sigma(recorded: list, replayed: list, gate_sigma: float = SIG
     unobservable and honest, lay far outside it: a clean recording failed its comparison."""
     import numpy as np
 
-    compared = beyond = one_only = 0
+    compared = beyond = one_only = other = 0
     worst = 0.0
     for a, b in _matched(recorded, replayed)[0]:
+        if a.get("track_id") != b.get("track_id"):
+            # two objects' positions, however close in sigma (an unobservable estimate's covariance spans both)
+            other += 1
+            continue
         pa, pb = a.get("ned_m"), b.get("ned_m")
         if (pa is None) != (pb is None):
             one_only += 1
@@ -635,7 +645,7 @@ def compare_within_sigma(recorded: list, replayed: list, gate_sigma: float = SIG
         compared += 1
         beyond += m > gate_sigma
         worst = max(worst, m)
-    return SigmaComparison(compared, beyond, worst, one_only, gate_sigma)
+    return SigmaComparison(compared, beyond, worst, one_only, gate_sigma, other)
 
 
 def compare_objects(recorded: list, replayed: list) -> tuple[int, int, int]:
@@ -678,6 +688,12 @@ def _print_compare(diffs, matched: int, unmatched: int, within=None, worker=None
             f"{within.compared - within.beyond}/{within.compared}, {within.beyond} beyond"
             + (f" (max {within.max_sigma:.3g} sigma)" if within.compared else "")
             + f"; {within.position_only_one} with a position in one only"
+            + (
+                f"; {within.other_object} frames tracking another object (track_id; operator selections are not "
+                "replayed), not compared"
+                if within.other_object
+                else ""
+            )
             + (
                 f" (a worker's recording matches with at most {100 * WORKER_BEYOND_SHARE:g} % beyond and none beyond "
                 f"{WORKER_GROSS_SIGMA:g} sigma)"
