@@ -133,6 +133,9 @@ class ObjectTracker:
         self.clutter = clutter or ClutterParams()
         self.mode = mode
         self._tracks: list[TrackRecord] = []
+        # each object's centre as the last frame's output showed it (a coasting one's prediction through that
+        # frame's rotation, not its last measured pixel): where an operator clicks
+        self._shown_uv: dict[int, tuple[float, float]] = {}
         self._next_id = 1  # ids from 1, as the track output counts them
         self._primary: int | None = None
         self._frame_index = -1
@@ -853,20 +856,25 @@ class ObjectTracker:
         """Forget every track and the primary; ids are not reused."""
         self.clear_primary()
         self._tracks = []
+        self._shown_uv = {}
 
     def select_point(
         self, u_px: float, v_px: float, radius_px: float, rect_px: tuple[float, float, float, float] | None = None
     ) -> int | None:
         """Make the confirmed or coasting track nearest (u, v) within ``radius_px`` the primary; its id,
         or None (the primary is then unchanged).  ``rect_px`` = (x0, y0, x1, y1): only a track whose centre lies
-        in it (an operator's box selects what is in the box)."""
+        in it (an operator's box selects what is in the box).  A track's centre is where the last frame's output
+        showed it (a coasting track's prediction, which the ground station draws; its last measured pixel lags a
+        slewing gimbal or a target behind cloud by tens of pixels); a track that output did not show is not
+        selectable."""
         best, best_d = None, radius_px
         for t in self._tracks:
-            if rect_px is not None and not (
-                rect_px[0] <= t.uv[0] <= rect_px[2] and rect_px[1] <= t.uv[1] <= rect_px[3]
-            ):
+            uv = self._shown_uv.get(t.object_id)
+            if uv is None:
                 continue
-            d = math.hypot(t.uv[0] - u_px, t.uv[1] - v_px)
+            if rect_px is not None and not (rect_px[0] <= uv[0] <= rect_px[2] and rect_px[1] <= uv[1] <= rect_px[3]):
+                continue
+            d = math.hypot(uv[0] - u_px, uv[1] - v_px)
             if t.confirmed and d <= best_d:
                 best, best_d = t, d
         if best is None:
@@ -932,6 +940,7 @@ class ObjectTracker:
                     t.age,
                 )
             )
+        self._shown_uv = {o.object_id: (o.u_px, o.v_px) for o in objs}
         return ObjectsUpdate(tuple(objs), self._primary, primary_det, changed, event, self._frame_index)
 
 

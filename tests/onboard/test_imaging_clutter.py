@@ -373,6 +373,34 @@ def test_object_chain_selections_on_one_frame_measure_it_once_and_a_stop_in_auto
     assert not ObjectChain(K, mode="operator").holding  # operator mode waits by design: no hold to report
 
 
+def test_a_click_selects_a_coasting_object_where_it_is_shown_not_where_it_was_last_measured():
+    """A coasting object is published (and drawn by the ground station) at its prediction; the click was matched
+    against its last measured pixel, 30 px behind it here: a click on the drawn object was refused, and one on
+    the empty sky where it had been selected it."""
+    from onboard.imaging.objects_model import TrackRecord, los_from_pixel
+
+    tr = ObjectTracker(K, mode="operator")
+    R = np.eye(3)
+    # a confirmed track last measured at (100, 100), predicted now at (130, 100) after 10 frames unseen
+    rec = TrackRecord(
+        7,
+        los_from_pixel(K, 130.0, 100.0, R),
+        np.zeros(3),
+        (100.0, 100.0),
+        (99, 99, 2, 2),
+        hits=30,
+        misses=10,
+        age=40,
+        confirmed=True,
+    )
+    tr._tracks = [rec]
+    out = tr._output(np.zeros((H_PX, W_PX), np.uint8), R, "normal", measured=set(), changed=False)
+    (shown,) = out.objects
+    assert shown.state == "coasting" and math.hypot(shown.u_px - 130.0, shown.v_px - 100.0) < 1e-6
+    assert tr.select_point(100.0, 100.0, 20.0) is None  # where it was: empty sky now
+    assert tr.select_point(130.0, 100.0, 20.0) == 7  # where it is drawn
+
+
 def test_objects_message_carries_every_confirmed_object_as_json():
     import json
 
