@@ -72,7 +72,13 @@ def frame_objects(pipeline: Any, track: Track | None) -> dict[str, Any] | None:
 
     rays = track.pose_valid and not getattr(pipeline, "withheld_because", ())
     return objects_message(
-        upd, track.time_boot_us, track.time_unix_us, track.time_unix_sigma_us, track.compensated_us, rays
+        upd,
+        track.time_boot_us,
+        track.time_unix_us,
+        track.time_unix_sigma_us,
+        track.compensated_us,
+        rays,
+        getattr(pipeline, "attitude_sigma_rad", 0.0),
     )
 
 

@@ -341,13 +341,16 @@ def objects_message(
     time_unix_sigma_us: int | None = None,
     compensated_us: int = 0,
     rays: bool = True,
+    attitude_sigma_rad: float = 0.0,
 ) -> dict:
     """The ``irtrack/<vehicle>/objects`` message of one frame (JSON-ready, schema ``irtrack.objects/1``):
     ``time_boot_us``, ``time_unix_us`` and ``time_unix_sigma_us`` (the frame's UTC and its 1-sigma, us, as in
     the track; null until the daemon maps its boot clock to UTC), ``compensated_us`` (as in the track: the lines of
     sight are of ``time_boot_us`` minus it, the camera's measured latency), ``frame_index``, ``primary_id`` and
     ``objects``, one per confirmed or coasting object: ``id``, ``state``, ``u_px``, ``v_px``, ``box_px`` [x, y, w,
-    h], ``los_ned`` (unit line of sight, local NED, or null), ``los_sigma_rad`` (its 1-sigma, or null), ``score``
+    h], ``los_ned`` (unit line of sight, local NED, or null), ``los_sigma_rad`` (its 1-sigma per axis across it, or null: the chain's measurement, 1 px growing by
+    1 px a frame while coasting, and ``attitude_sigma_rad``, the camera attitude's error, in quadrature, as the
+    track's line of sight counts it), ``score``
     (detection contrast over the local threshold, 0 while coasting) and ``primary``.  ``rays`` False (the frame has
     no pose, or the daemon withholds its geometry): every ``los_ned`` and ``los_sigma_rad`` null, as the track's."""
     return {
@@ -366,7 +369,9 @@ def objects_message(
                 "v_px": round(o.v_px, 3),
                 "box_px": [round(b, 2) for b in o.bbox],
                 "los_ned": None if o.los_ned is None or not rays else [round(c, 7) for c in o.los_ned],
-                "los_sigma_rad": o.sigma_rad if o.los_ned is not None and rays else None,
+                "los_sigma_rad": math.hypot(o.sigma_rad, attitude_sigma_rad)
+                if o.los_ned is not None and rays
+                else None,
                 "score": round(o.score, 3),
                 "primary": o.object_id == update.primary_id,
             }

@@ -393,6 +393,8 @@ class FramePipeline:
         self._coast_max_s = float(getattr(getattr(config, "pose", None), "dead_reckoning_max_s", 10.0))
         self._pixel_sigma_px = float(ec.pixel_sigma_px)
         self._attitude_sigma_rad = math.radians(math.hypot(ec.attitude_white_sigma_deg, ec.attitude_bias_sigma_deg))
+        #: the camera attitude's 1-sigma per axis the lines of sight carry (the track's; the objects message's too)
+        self.attitude_sigma_rad = self._attitude_sigma_rad
         f_px = math.sqrt(self.intrinsics.fx_px * self.intrinsics.fy_px)
         self._bearing_sigma_rad = math.hypot(self._pixel_sigma_px / f_px, self._attitude_sigma_rad)
         self._residuals: collections.deque = collections.deque()  # (time_boot_us, z_u^2 + z_v^2)

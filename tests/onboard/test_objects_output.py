@@ -365,3 +365,25 @@ def test_the_objects_rays_are_withheld_with_the_tracks_and_say_their_compensatio
     assert all(los is None for los_list, _, _ in after for los in los_list)
     assert all(s is None for _, sigmas, _ in after for s in sigmas)
     assert all(track.los is None for _, _, track in after)
+
+
+def test_the_objects_line_of_sight_sigma_counts_the_attitude_error_as_the_tracks_does():
+    """The objects message gave each ray the chain's pixel sigma alone (1 px over fx), while the track's line of sight
+    of the same primary on the same frame counts the camera attitude's error too: 0.65 of the track's sigma under
+    RTK (an audit). Now the attitude's sigma is in quadrature: never below the track's elevation sigma."""
+    import math
+
+    config = build_config({"imaging": {"chain": "objects"}, "estimator": {"enabled": False}})
+    rig = Rig(estimator=None, config=config)
+    compared = 0
+    for k in range(25):
+        track = rig.step(k)
+        msg = frame_objects(rig.pipe, track)
+        prim = [o for o in msg["objects"] if o["primary"] and o["state"] == "confirmed"] if msg else []
+        if not prim or track.los is None:
+            continue
+        s_el_rad = math.radians(track.los.sigma_elevation_deg)
+        assert prim[0]["los_sigma_rad"] >= s_el_rad
+        assert prim[0]["los_sigma_rad"] >= rig.pipe.attitude_sigma_rad > 0
+        compared += 1
+    assert compared >= 10
