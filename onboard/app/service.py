@@ -648,6 +648,7 @@ class OnboardService:
             estimates_stale=self.counter.counts.get("estimate_stale", 0),
             cpu_words=self.cpu_load.words(),
             estimator_silent_s=float(getattr(self.estimator, "silent_s", 0.0)),
+            quota_bound=self.cpu_load.quota_bound(),
         )
         if self.link is not None:
             if self._first_telemetry_s is None and self.pose.newest_time_boot_us() is not None:

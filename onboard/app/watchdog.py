@@ -543,11 +543,14 @@ class Watchdog:
         estimates_stale: int,
         cpu_words: str = "",
         estimator_silent_s: float = 0.0,
+        quota_bound: bool | None = None,
     ) -> None:
         """Update with the running counts of frames dropped and positions withheld as too old;
         ``cpu_words``: the CPU the daemon got, in words, for the message (see ``overload``);
         ``estimator_silent_s``: how long the estimator's worker process has answered nothing (the cause the message
-        names instead of the CPU when frames are not being dropped)."""
+        names instead of the CPU when frames are not being dropped); ``quota_bound``: whether its CPU quota ran out
+        in the last interval (False: a quota that did not bind, so other work on the computer took the CPU; None:
+        unknown), which decides the advice."""
         counts = (int(frames_dropped), int(estimates_stale))
         last, self._load_counts = self._load_counts, counts
         if last is None:
@@ -574,12 +577,17 @@ class Watchdog:
                     f"stopped or stalled process; it is killed and replaced after 5 s){cpu_words}",
                 )
             else:
-                self._raise(
-                    "overload",
-                    f"{seen}: the daemon does not get the CPU it needs{cpu_words}; raise its CPU limit (compose "
-                    "deploy.resources.limits.cpus, sized in deploy/README.md), lower the camera's frame rate, or move "
-                    "other work off this computer",
-                )
+                if quota_bound is False:
+                    advice = (
+                        "its CPU quota did not run out, so other work on this computer takes the CPU: move it off, "
+                        "give the daemon a higher priority, or lower the camera's frame rate"
+                    )
+                else:
+                    advice = (
+                        "raise its CPU limit (compose deploy.resources.limits.cpus, sized in deploy/README.md), lower "
+                        "the camera's frame rate, or move other work off this computer"
+                    )
+                self._raise("overload", f"{seen}: the daemon does not get the CPU it needs{cpu_words}; {advice}")
         elif now_s - self._last_overload_s >= OVERLOAD_CLEAR_S:
             self._clear("overload")
 

@@ -93,6 +93,7 @@ STATUS_JSON_KEYS: tuple[tuple[str, dict[str, Any]], ...] = (
                 "throttled_share": {"type": ["number", "null"]},
                 "needs_share": {"type": ["number", "null"]},
                 "throttled_periods": {"type": ["integer", "null"]},
+                "throttled_periods_share": {"type": ["number", "null"]},
                 "quota_cores": {"type": ["number", "null"]},
             },
             "required": ["share", "pipeline_share", "cores"],
@@ -259,7 +260,8 @@ def build_status(
     and ``streams``, per requested stream its ``requested_hz`` and ``measured_hz`` (:mod:`onboard.core.stream_rate`).
     ``cpu``: ``share`` = process CPU time / wall time over the last interval (1.0 = one core),
     ``pipeline_share`` = the pipeline thread's, ``cores`` = CPUs in the machine; the service adds
-    ``gets_share``, ``throttled_share``, ``needs_share``, ``throttled_periods`` and ``quota_cores`` from
+    ``gets_share``, ``throttled_share``, ``needs_share``, ``throttled_periods``, ``throttled_periods_share`` and
+    ``quota_cores`` from
     ``/proc/self/stat`` and the cgroup's ``cpu.stat`` (:class:`onboard.app.cpu_load.CpuLoad`).  ``track``: the
     latest track's state in short, with ``age_s`` how long ago it was published (a state that stopped with the
     frames stays in this section: the age says so).  ``warnings``: the conditions active now that an operator must

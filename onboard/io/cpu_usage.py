@@ -34,6 +34,7 @@ class CpuReading:
     throttled_s: float | None
     nr_throttled: int | None
     quota_cores: float | None
+    nr_periods: int | None = None  # CFS periods in which the cgroup ran (None without a CFS controller)
 
 
 class CpuUsageReader:
@@ -71,12 +72,12 @@ class CpuUsageReader:
             except InputError as exc:
                 self._warn_once("stat", f"{self._proc}/self/stat: {exc}")
         throttled_s = quota = None
-        nr = None
+        nr = periods = None
         if self._dir is not None:
             try:
                 th = parse_cgroup_cpu_stat(_read(self._dir / "cpu.stat") or "")
                 if th is not None:
-                    throttled_s, nr = th.throttled_s, th.nr_throttled
+                    throttled_s, nr, periods = th.throttled_s, th.nr_throttled, th.nr_periods
                 if self._version == 2:
                     mx = _read(self._dir / "cpu.max")
                     quota = None if mx is None else parse_cpu_max(mx)
@@ -85,7 +86,7 @@ class CpuUsageReader:
                     quota = None if q is None or p is None else parse_cfs_quota(q, p)
             except InputError as exc:
                 self._warn_once("cgroup", f"{self._dir}: {exc}")
-        return CpuReading(process_s, throttled_s, nr, quota)
+        return CpuReading(process_s, throttled_s, nr, quota, periods)
 
     def _warn_once(self, key: str, message: str) -> None:
         if key not in self._warned:

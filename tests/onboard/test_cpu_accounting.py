@@ -119,7 +119,7 @@ def test_share_per_s():
     assert share_per_s(1.0, 2.0, 0.0) is None
 
 
-def _tree(tmp_path, version: int, stat_ticks: int, throttled: str, quota: tuple[str, str]):
+def _tree(tmp_path, version: int, stat_ticks: int, throttled: str, quota: tuple[str, str], periods=(10, 4)):
     proc = tmp_path / "proc" / "self"
     proc.mkdir(parents=True, exist_ok=True)
     (proc / "stat").write_text(f"1 (onboard) S 0 0 0 0 -1 0 0 0 0 0 {stat_ticks} 0 0 0 20 0 1 0 5\n")
@@ -130,13 +130,15 @@ def _tree(tmp_path, version: int, stat_ticks: int, throttled: str, quota: tuple[
         d.mkdir(parents=True, exist_ok=True)
         (d / "cpu.cfs_quota_us").write_text(quota[0])
         (d / "cpu.cfs_period_us").write_text(quota[1])
-        (d / "cpu.stat").write_text(f"nr_periods 10\nnr_throttled 4\nthrottled_time {throttled}\n")
+        (d / "cpu.stat").write_text(f"nr_periods {periods[0]}\nnr_throttled {periods[1]}\nthrottled_time {throttled}\n")
     else:
         (proc / "cgroup").write_text("0::/bench\n")
         d = root / "bench"
         d.mkdir(parents=True, exist_ok=True)
         (d / "cpu.max").write_text(f"{quota[0]} {quota[1]}\n")
-        (d / "cpu.stat").write_text(f"usage_usec 1\nnr_periods 10\nnr_throttled 4\nthrottled_usec {throttled}\n")
+        (d / "cpu.stat").write_text(
+            f"usage_usec 1\nnr_periods {periods[0]}\nnr_throttled {periods[1]}\nthrottled_usec {throttled}\n"
+        )
     return tmp_path / "proc", root
 
 
@@ -146,13 +148,26 @@ def test_reader_and_load(tmp_path, version, throttled0, throttled1):
     load = CpuLoad(CpuUsageReader(proc, root))
     first = load.sample(10.0, worker_cpu_s=0.0)
     assert first["gets_share"] is None and first["quota_cores"] == pytest.approx(0.25)
-    _tree(tmp_path, version, 150, throttled1, ("25000", "100000"))  # +0.5 s of process CPU at 100 ticks/s
+    # +0.5 s of process CPU at 100 ticks/s; the quota ran out in 5 of the 20 periods it ran in
+    _tree(tmp_path, version, 150, throttled1, ("25000", "100000"), periods=(30, 9))
     s = load.sample(12.0, worker_cpu_s=0.2)
     ticks = load.reader._ticks_per_s
     assert s["gets_share"] == pytest.approx((50 / ticks + 0.2) / 2.0)
     assert s["throttled_share"] == pytest.approx(0.25)
-    assert s["needs_share"] == pytest.approx(s["gets_share"] + 0.25)
-    assert "quota of 0.25 cores" in load.words()
+    assert s["throttled_periods"] == 5 and s["throttled_periods_share"] == pytest.approx(0.25)
+    # the quota bound: it needed more than it got, by how much the kernel's counters do not say (throttled_time is
+    # summed over the CPUs' run queues to the end of each period: gets + throttled overstated it ~4x)
+    assert s["needs_share"] is None and load.quota_bound() is True
+    assert "quota ran out in 25 % of its periods" in load.words() and "quota of 0.25 cores" in load.words()
+    # a quota that did not bind: it got what it needed
+    _tree(tmp_path, version, 200, throttled1, ("25000", "100000"), periods=(50, 9))
+    s = load.sample(14.0, worker_cpu_s=0.4)
+    assert s["needs_share"] == pytest.approx(s["gets_share"]) and s["throttled_periods"] == 0
+    assert load.quota_bound() is False and "ran out" not in load.words()
+    # counters that went back (a cgroup recreated): unknown, not a negative count
+    _tree(tmp_path, version, 250, throttled1, ("25000", "100000"), periods=(3, 1))
+    s = load.sample(16.0, worker_cpu_s=0.6)
+    assert s["throttled_periods"] is None and s["throttled_periods_share"] is None and load.quota_bound() is None
 
 
 def test_reader_without_cgroup(tmp_path):
@@ -202,3 +217,21 @@ def test_overload_names_a_silent_estimator_worker_instead_of_the_cpu(caplog):
     assert "worker process has answered nothing for 1.6 s" in w.message and "cpus" not in w.message
     wd.load(1.0, frames_dropped=2, estimates_stale=8, estimator_silent_s=2.1)  # frames dropped too: the CPU's words
     assert "does not get the CPU it needs" in wd.active[0].message
+
+
+@pytest.mark.parametrize(
+    "quota_bound, says, not_said",
+    [
+        (True, "cpus", "did not run out"),
+        (None, "cpus", "did not run out"),
+        (False, "other work on this computer", "cpus"),
+    ],
+)
+def test_overload_advice_follows_whether_the_quota_ran_out(caplog, quota_bound, says, not_said):
+    """With no quota holding it back (the counters say the quota never ran out), raising the CPU limit cannot help:
+    the first advice was that all the same (an audit starving the daemon with other processes, no quota)."""
+    wd = _watchdog(caplog)
+    wd.load(0.0, frames_dropped=0, estimates_stale=0)
+    wd.load(1.0, frames_dropped=3, estimates_stale=0, quota_bound=quota_bound)
+    (w,) = wd.active
+    assert says in w.message and not_said not in w.message
