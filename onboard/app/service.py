@@ -200,6 +200,7 @@ class OnboardService:
         self.arrival_gaps = ArrivalGaps()  # frames numbered by the camera that never reached the daemon
         self.frames_dropped = 0
         self.tracks_published = 0
+        self.frames_failed = 0  # frames taken that a pipeline error stopped before they were processed
         self.latency_ms = RollingStats(1000)
         self.queue_wait_ms = RollingStats(1000)
         self.publish_ms = RollingStats(1000)
@@ -476,6 +477,7 @@ class OnboardService:
             # in between may carry a direction made without the gimbal
             if getattr(self.link, "gimbal_reports", 0) > 0:
                 self.pipeline.withheld_because = (*withheld, "gimbal_mismatch")
+        processed = self.pipeline.frames_processed
         try:
             track = with_utc(self.pipeline.process(frame, received_ns), self.utc.mapping)  # its UTC, once known
             now_s = self._clock()
@@ -493,6 +495,10 @@ class OnboardService:
             return None
         except Exception as exc:  # noqa: BLE001 - never let one frame kill the loop
             self.counter.count("pipeline_error", f"{type(exc).__name__}: {exc}")
+            if self.pipeline.frames_processed == processed:
+                # taken and not processed: a refused frame in the status's frame counts, which else lost it
+                # (in = processed + dropped + rejected + queued)
+                self.frames_failed += 1
             if self.counter["pipeline_error"] == 1:  # the first one with its traceback, on one line
                 log.exception("pipeline error (frame skipped)")
             return None
@@ -748,7 +754,8 @@ class OnboardService:
                 v
                 for k, v in counts.items()
                 if (k.startswith("frame_") and k not in ACCEPTED_FRAME_EVENTS) or k in TRACKER_REFUSALS
-            ),
+            )
+            + self.frames_failed,
             tracks_published=published,
             processing_ms=self.pipeline.processing_ms.summary(),
             latency_ms=self.latency_ms.summary(),

@@ -248,7 +248,9 @@ def build_status(
     from the gaps in their sequence numbers; :class:`onboard.pipeline.admission.ArrivalGaps`), ``processed`` (a Track
     was produced), ``dropped`` (oldest frames dropped because the pipeline was behind), ``rejected`` (invalid frames:
     sum of the ``frame_*`` reasons and of ``tracker_error`` / ``tracker_output_invalid``, frames the tracker failed
-    on), ``published`` (track messages put on zenoh). ``processing_ms``: decode +
+    on, and the frames a ``pipeline_error`` stopped before a Track), ``published`` (track messages put on zenoh).
+    Every frame received is in one of them: ``in = processed + dropped + rejected + queue_length`` (the one frame being
+    processed aside), and ``in + missing`` is what the camera sent. ``processing_ms``: decode +
     imaging + pose + estimator per frame; ``latency_ms``: frame receipt to track published (local
     monotonic clock); ``queue_wait_ms``: receipt to the start of processing; ``publish_ms``: the
     zenoh ``put`` of the track; ``stages_ms``: parts of the processing (``imaging``, ``estimator``);

@@ -1194,3 +1194,32 @@ def test_gcs_signed_false_leaves_the_camera_unsigned_beside_a_signed_autopilot_l
     finally:
         d.stop()
         gcs.close()
+
+
+def test_a_frame_a_pipeline_error_stops_is_in_the_status_frame_counts():
+    """A frame taken from the queue whose processing raised was counted pipeline_error but in none of the frames
+    counts: in 5, processed 4, dropped 0, rejected 0 (an audit of the overload path). It is a rejected frame now,
+    so every frame received is in one count."""
+    import numpy as np
+
+    from onboard.core.irframe import IrFrame
+
+    svc, clock = _quiet_service()
+    px = np.zeros((512, 640), np.uint8)
+
+    def feed(k: int) -> None:
+        svc.frames_in += 1
+        svc.queue.push((IrFrame(seq=k, time_boot_us=1000 + 33_333 * k, pixels=px), clock.ns()))
+        svc._process(*svc.queue.pop(0.0))
+
+    for k in range(3):
+        feed(k)
+    track = svc.pipeline._track
+    svc.pipeline._track = lambda *a, **kw: (_ for _ in ()).throw(RuntimeError("boom"))
+    feed(3)
+    svc.pipeline._track = track
+    feed(4)
+    st = svc.status(clock())
+    f = st["frames"]
+    assert st["rejected"]["pipeline_error"] == 1 and f["processed"] == 4 and f["rejected"] == 1
+    assert f["in"] == f["processed"] + f["dropped"] + f["rejected"] + f["queue_length"]
