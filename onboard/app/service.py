@@ -678,6 +678,11 @@ class OnboardService:
     def _worker_cpu(self) -> float:
         return getattr(self.estimator, "worker_cpu_s", 0.0)
 
+    def _worker_process_cpu(self) -> float:
+        """The estimator's CPU seconds where /proc/self/stat does not hold them: a worker process's (a live child is
+        not in it until reaped); a thread worker's are this process's already, and were counted twice."""
+        return self._worker_cpu() if self.config.estimator.worker == "process" else 0.0
+
     def _current_track(self, now: float) -> Track | None:
         return self.newest.current(now, self.config.output.track_stale_s)
 
@@ -803,7 +808,7 @@ class OnboardService:
         p1, w1 = time.process_time(), self._pipeline_cpu_s + self._worker_cpu()
         wall = max(now - t0, 1e-9)
         status = self.status(now, (p1 - p0) / wall, (w1 - w0) / wall)
-        status["cpu"].update(self.cpu_load.sample(now, self._worker_cpu()))
+        status["cpu"].update(self.cpu_load.sample(now, self._worker_process_cpu()))
         try:
             data = json.dumps(status, separators=(",", ":"), allow_nan=False).encode()
         except (TypeError, ValueError) as exc:

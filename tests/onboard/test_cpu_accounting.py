@@ -164,6 +164,9 @@ def test_reader_and_load(tmp_path, version, throttled0, throttled1):
     s = load.sample(14.0, worker_cpu_s=0.4)
     assert s["needs_share"] == pytest.approx(s["gets_share"]) and s["throttled_periods"] == 0
     assert load.quota_bound() is False and "ran out" not in load.words()
+    # an extra status 30 ms later (a warning raised): the last figures stand, not a window of three clock ticks
+    _tree(tmp_path, version, 260, throttled1, ("25000", "100000"), periods=(51, 9))
+    assert load.sample(14.03, worker_cpu_s=0.4) == s
     # counters that went back (a cgroup recreated): unknown, not a negative count
     _tree(tmp_path, version, 250, throttled1, ("25000", "100000"), periods=(3, 1))
     s = load.sample(16.0, worker_cpu_s=0.6)

@@ -1223,3 +1223,14 @@ def test_a_frame_a_pipeline_error_stops_is_in_the_status_frame_counts():
     f = st["frames"]
     assert st["rejected"]["pipeline_error"] == 1 and f["processed"] == 4 and f["rejected"] == 1
     assert f["in"] == f["processed"] + f["dropped"] + f["rejected"] + f["queue_length"]
+
+
+@pytest.mark.parametrize("worker, counted", [("thread", 0.0), ("inline", 0.0), ("process", 5.0)])
+def test_the_cpu_status_adds_the_estimators_cpu_only_from_a_worker_process(worker, counted):
+    """/proc/self/stat holds a thread worker's CPU already; adding the worker's own count too put gets_share above the
+    process's share by 0.01-0.07 of a core in every status (an audit). Only a live worker process is not in it."""
+    import types
+
+    svc, _ = _quiet_service({"estimator": {"enabled": False, "worker": worker}})
+    svc.estimator = types.SimpleNamespace(worker_cpu_s=5.0)
+    assert svc._worker_process_cpu() == counted
