@@ -15,8 +15,10 @@ files.  The sources:
 ``cpu.max`` (v2: ``<quota_us|max> <period_us>``) and ``cpu.cfs_quota_us`` / ``cpu.cfs_period_us`` (v1,
     quota ``-1`` for none): the CFS quota, as a number of cores.
 
-Throttled time is wall time during which the cgroup had runnable work and the quota had run out: the
-CPU the daemon needed and did not get, in the same unit as its CPU share (seconds per second).
+Throttled time is not the CPU the daemon needed and did not get: the kernel adds, for every CPU whose run queue of
+the cgroup ran out of quota, the time to the end of that period, however little it had left to run (so it can
+exceed one second per second on a machine of several cores).  ``nr_throttled`` over ``nr_periods`` says how often
+the quota bound.
 """
 
 from __future__ import annotations
@@ -129,9 +131,10 @@ def parse_cpu_max(text: str) -> float | None:
     if parts[0] == "max":
         return None
     try:
-        return _cores(int(parts[0]), int(parts[1]), "cpu.max")
+        quota_us, period_us = int(parts[0]), int(parts[1])
     except ValueError as exc:
         raise InputError(f"cpu.max: not integers: {text!r}") from exc
+    return _cores(quota_us, period_us, "cpu.max")  # its own words for a value out of range (InputError is a ValueError)
 
 
 def parse_cfs_quota(quota_text: str, period_text: str) -> float | None:

@@ -52,12 +52,23 @@ class CpuUsageReader:
             self._version, path = where
             root = Path(cgroup_root)
             rel = path.lstrip("/")
-            candidates = (
-                [root / "cpu" / rel, root / "cpu,cpuacct" / rel, root / "cpuacct,cpu" / rel]
-                if self._version == 1
-                else [root / rel, root / "unified" / rel]
-            )
+            mounts = [root / "cpu", root / "cpu,cpuacct", root / "cpuacct,cpu"] if self._version == 1 else [root]
+            candidates = [m / rel for m in mounts] + ([] if self._version == 1 else [root / "unified" / rel])
+            # cgroup v1 has no cgroup namespace in a container (Docker, Podman on a v1 host such as a Jetson's
+            # L4T): /proc/self/cgroup names the host's /docker/<id> while the container sees its own cgroup at the
+            # controller's mount root; a path that is not there falls back to that root
+            if self._version == 1 and rel:
+                candidates += mounts
             self._dir = next((d for d in candidates if (d / "cpu.stat").is_file()), None)
+            if self._dir is None:
+                log.warning(
+                    "CPU accounting: %s names cgroup %s (v%d), but no cpu.stat under %s: the quota and its "
+                    "throttling are reported as null",
+                    self._proc / "self" / "cgroup",
+                    path,
+                    self._version,
+                    root,
+                )
 
     @property
     def cgroup_dir(self) -> Path | None:

@@ -101,9 +101,21 @@ def test_quota_round_trip(quota_us, period_us):
     assert parse_cfs_quota(f"{quota_us}\n", f"{period_us}\n") == pytest.approx(cores)
 
 
-@pytest.mark.parametrize("bad", ["", "max", "50000", "a b", "0 100000", "-5 100000", "5 0"])
-def test_cpu_max_refused(bad):
-    with pytest.raises(InputError):
+@pytest.mark.parametrize(
+    "bad, words",
+    [
+        ("", "expected"),
+        ("max", "expected"),
+        ("50000", "expected"),
+        ("a b", "not integers"),
+        # integers out of range say so (they were reported as 'not integers')
+        ("0 100000", "must be positive"),
+        ("-5 100000", "must be positive"),
+        ("5 0", "must be positive"),
+    ],
+)
+def test_cpu_max_refused(bad, words):
+    with pytest.raises(InputError, match=words):
         parse_cpu_max(bad)
 
 
@@ -238,3 +250,27 @@ def test_overload_advice_follows_whether_the_quota_ran_out(caplog, quota_bound, 
     wd.load(1.0, frames_dropped=3, estimates_stale=0, quota_bound=quota_bound)
     (w,) = wd.active
     assert says in w.message and not_said not in w.message
+
+
+def test_a_v1_container_finds_its_cgroup_at_the_controllers_mount_root(tmp_path, caplog):
+    """cgroup v1 has no cgroup namespace: in a container /proc/self/cgroup names the host's /docker/<id>, while the
+    container's own cgroup is the controller's mount root. The reader found no cpu.stat, and the quota and its
+    throttling read null, as if there were no limit, without a word (an audit)."""
+    proc = tmp_path / "proc" / "self"
+    proc.mkdir(parents=True)
+    (proc / "stat").write_text("1 (onboard) S 0 0 0 0 -1 0 0 0 0 0 100 0 0 0 20 0 1 0 5\n")
+    (proc / "cgroup").write_text("12:cpu,cpuacct:/docker/abc123\n0::/\n")
+    root = tmp_path / "cg"
+    d = root / "cpu,cpuacct"
+    d.mkdir(parents=True)
+    (d / "cpu.stat").write_text("nr_periods 100\nnr_throttled 40\nthrottled_time 2000000000\n")
+    (d / "cpu.cfs_quota_us").write_text("50000\n")
+    (d / "cpu.cfs_period_us").write_text("100000\n")
+    r = CpuUsageReader(tmp_path / "proc", root)
+    assert r.cgroup_dir == d
+    reading = r.read()
+    assert reading.quota_cores == pytest.approx(0.5) and reading.nr_throttled == 40 and reading.nr_periods == 100
+    # no cpu.stat anywhere: null, and said once
+    with caplog.at_level(logging.WARNING, "onboard.io.cpu_usage"):
+        assert CpuUsageReader(tmp_path / "proc", tmp_path / "empty").cgroup_dir is None
+    assert any("no cpu.stat" in rec.getMessage() for rec in caplog.records)
