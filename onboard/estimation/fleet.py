@@ -688,11 +688,21 @@ class FleetEstimate(StateEstimate):
 
 
 def fleet_verdict(
-    sol: Triangulation, rays: Sequence[Ray], config: FleetConfig | None = None, target_id: int = 0
+    sol: Triangulation,
+    rays: Sequence[Ray],
+    config: FleetConfig | None = None,
+    target_id: int = 0,
+    noise: Mapping[str, NoiseModel] | NoiseModel | None = None,
 ) -> FleetEstimate:
     """The fleet estimate of ``sol`` (solved from ``rays``) with its verdict and, when unobservable, its range
-    floor (module docstring, "Verdict")."""
+    floor (module docstring, "Verdict").  ``noise``: the vehicles' noise models the solve used; the floor's widening
+    across each line of sight then takes the angular sigma the solve models for its ray
+    (:func:`modelled_cross_sigma_rad`, the configured attitude-bias prior in it), else the published one."""
     config = config or FleetConfig()
+
+    def cross(ray: Ray) -> np.ndarray:
+        return ray.sigma_cross_rad if noise is None else modelled_cross_sigma_rad(ray, noise_for(noise, ray.vehicle))
+
     P = sol.cov_p_ned_m2
     p = sol.p_ned_m
     contributions = []
@@ -742,7 +752,7 @@ def fleet_verdict(
             # apart) cross their rays no better than one vehicle: its floor, not the collapsed pair's own
             cams = np.array([newest[v].p_cam_ned_m for v in sol.vehicles])
             baseline_m = float(np.max(np.linalg.norm(cams[:, None, :] - cams[None, :, :], axis=-1)))
-            sigma_rad = max(float(np.max(newest[v].sigma_cross_rad)) for v in sol.vehicles)
+            sigma_rad = max(float(np.max(cross(newest[v]))) for v in sol.vehicles)
             lone = baseline_m < 3.0 * sigma_rad * max(max(los_r), vc.min_range_m)
         for i, rng in enumerate(los_r):
             # one vehicle's own rays over a short window, or an estimate collapsed onto a camera: the range is
@@ -756,7 +766,7 @@ def fleet_verdict(
         # near the camera has almost no cross-range sigma of its own)
         for u, rng, f_m, ray in zip(los_u, los_r, floor_m, (newest[v] for v in sol.vehicles)):
             across = np.eye(3) - np.outer(u, u)
-            cov_p = cov_p + across * (float(np.max(ray.sigma_cross_rad)) * (rng + f_m)) ** 2
+            cov_p = cov_p + across * (float(np.max(cross(ray))) * (rng + f_m)) ** 2
         # the ratios published beside it are the floored covariance's, as the daemon's are: a consumer that
         # thresholds on them must not read the solution's own, confident figure next to the floored covariance
         contributions = [

@@ -368,11 +368,11 @@ class FleetTracker:
         if target.last_multi is not None and len({r.vehicle for r in rays}) < 2:
             newest = max(rays, key=lambda r: r.t_s)
             sol = carried_with_bearing(target.last_multi, newest, self._noise(newest.vehicle), self.config)
-            est = fleet_verdict(sol, [newest], self.config, target_id)
+            est = fleet_verdict(sol, [newest], self.config, target_id, self.noise)
         else:
             v_time = None if target.last is None else target.last.v_ned_mps
             sol = triangulate(rays, self.noise, seed, self.config, v_time_ned_mps=v_time)
-            est = fleet_verdict(sol, rays, self.config, target_id)
+            est = fleet_verdict(sol, rays, self.config, target_id, self.noise)
         target.last = est
         if len(est.contributions) >= 2:
             target.last_multi = est

@@ -680,3 +680,25 @@ def test_a_vehicle_left_alone_off_by_its_larger_prior_keeps_an_honest_estimate_a
         assert len(lone_nees) > 100
         assert max(lone_nees) < chi2.ppf(0.999, 3), f"seed {seed}"
         assert back_s is not None and back_s < 0.1, f"seed {seed}: uav1 back after {back_s} s"
+
+
+def test_a_lone_vehicles_floor_is_widened_across_its_ray_by_its_configured_prior():
+    """The unobservable floor's widening across each line of sight took the ray's published sigma (0.11 deg) for a
+    vehicle whose configured prior is 1 deg (the solve's own view of that ray): uav2 alone, 1 deg off in elevation,
+    its floored estimate put the truth at NEES 23.9. Given the noise models, the widening takes the solve's sigma,
+    the prior in it: NEES 0.67."""
+    rng = np.random.default_rng(3)
+    uav2 = SynthVehicle("uav2", *F1_UAV2, attitude_error_rad=(0.0, math.radians(1.0), 0.0))
+    times = np.arange(0.0, 0.5, 1.0 / 30.0)
+    rays = [ray_of(measure(uav2, F1_TARGET, t, rng, F1_WHITE_RAD, RTK_BIAS_RAD, 0.02), "uav2", t) for t in times]
+    seed = F1_TARGET.p_ned_m(float(times[-1])) + rng.normal(0.0, 50.0, 3)
+    sol = triangulate(rays, UAV2_PRIOR_1_DEG, seed, FleetConfig())
+
+    def nees(est) -> float:
+        e = est.p_ned_m - F1_TARGET.p_ned_m(est.t_s)
+        return float(e @ np.linalg.solve(est.cov_p_ned_m2, e))
+
+    with_prior = fleet_verdict(sol, rays, FleetConfig(), 0, UAV2_PRIOR_1_DEG)
+    published = fleet_verdict(sol, rays, FleetConfig())
+    assert not with_prior.observable and not published.observable
+    assert nees(with_prior) < chi2.ppf(0.997, 3) < nees(published)
