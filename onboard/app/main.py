@@ -55,6 +55,8 @@ HARD_EXIT_MARGIN_S = 0.7  # past the budget: faulthandler dumps the stacks and e
 CLOSE_MARGIN_S = 0.3
 
 log = logging.getLogger("onboard")
+#: a start that takes longer than this to build the service says why (the kernels compile on a first start)
+SLOW_START_S = 3.0
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -297,15 +299,28 @@ def _serve(args: argparse.Namespace, stop: _StopSignals) -> int:
     cv2.setNumThreads(1)  # OpenCV's own pool would fight the pipeline for the cores
 
     from onboard.app.numba_seed import seed_numba_cache
-    from onboard.app.service import OnboardService
 
     seed_numba_cache()  # before any compiled kernel is loaded (the image chain's, the estimator's, in its worker too)
-
+    # the first start after an install compiles the numba kernels (10-30 s, silent): said once that is under way
+    slow = threading.Timer(
+        SLOW_START_S,
+        log.info,
+        (
+            "loading the image chain and the estimator: their compiled kernels are being built (the first start after "
+            "an install, 10-30 s; later starts read them from numba's cache)",
+        ),
+    )
+    slow.daemon = True
+    slow.start()
     try:
+        from onboard.app.service import OnboardService
+
         built = OnboardService(config)
     except IrtrackError as exc:
         print(f"{args.config or '(defaults)'}: {exc}", file=sys.stderr)
         return EXIT_CONFIG
+    finally:
+        slow.cancel()
     if stop.early:
         built.close(0.5)
         return _stopped_while_starting(stop.early)
