@@ -466,15 +466,17 @@ class FramePipeline:
                 else:
                     if req.kind == "point":
                         sel = self.tracker.select_point(pixels, req.u_px, req.v_px, req.radius_px, **(pose or {}))
-                        where = f"within {req.radius_px:.0f} px of ({req.u_px:.0f}, {req.v_px:.0f})"
+                        where = f"in {req.radius_px:.0f} px of ({req.u_px:.0f},{req.v_px:.0f})"
                     else:
                         sel = self.tracker.select_rectangle(pixels, req.rect_px, **(pose or {}))
                         x0, y0, x1, y1 = req.rect_px
                         where = f"in ({x0:.0f},{y0:.0f})-({x1:.0f},{y1:.0f})"
                     if sel is None:
-                        # the objects chain selects among the objects it has confirmed (tracked a few frames)
-                        what = "confirmed object" if self.config.imaging.chain == "objects" else "warm object"
-                        result = TrackResult(req.request_id, False, f"no {what} {where} px")
+                        # the objects chain selects among the objects it has confirmed (tracked a few frames); pixels
+                        # as the image's, and short: with the camera's "irtrack: " the usual refusal fits one
+                        # STATUSTEXT's 50 bytes (a longer one is chunked, which simple tools show in pieces)
+                        what = "tracked object" if self.config.imaging.chain == "objects" else "warm object"
+                        result = TrackResult(req.request_id, False, f"no {what} {where}")
                     else:
                         upd = sel
                         if self._selects_the_followed_object(sel):
