@@ -211,6 +211,41 @@ def test_replay_reproduces_the_recorded_tracks_bit_for_bit(recorded, tmp_path):
 
 
 @pytest.mark.integration
+def test_a_replays_live_view_shows_the_recorded_status_between_the_frames_it_came_between(recorded):
+    """The replay's live view advertised the status channel and sent nothing on it (a newcomer's walkthrough: 0 of
+    the recording's 33 status messages): it shows the recorded daemon's status now, each before the first frame
+    recorded after it."""
+    from onboard.app.replay import config_of, load_recording, replay
+
+    rec = load_recording(str(recorded.daemon_mcap))
+    assert len(rec.statuses) >= 5 and len(rec.input_log_ns) == len(rec.inputs)
+
+    class Live:
+        def __init__(self) -> None:
+            self.calls: list = []
+
+        def on_frame(self, frame) -> None:
+            self.calls.append("frame")
+
+        def on_status(self, payload: bytes) -> None:
+            self.calls.append(json.loads(payload))
+
+        def __getattr__(self, name):  # on_pose, on_track, on_objects: not looked at here
+            return lambda *a: None
+
+    live = Live()
+    replay(rec, config_of(rec), live=live)
+    shown = [c for c in live.calls if c != "frame"]
+    assert shown == [json.loads(b) for _, b in rec.statuses]  # every one, in order, as recorded
+    frames = [i for i, c in enumerate(live.calls) if c == "frame"]
+    between = [i for i, c in enumerate(live.calls) if c != "frame" and frames[0] < i < frames[-1]]
+    assert len(between) >= 5  # interleaved with the frames as the daemon published them, not all at one end
+    # the daemon's own count of frames in each status rises along the replay
+    ins = [c["frames"]["in"] for c in shown]
+    assert ins == sorted(ins) and ins[-1] > 100
+
+
+@pytest.mark.integration
 @pytest.mark.slow
 def test_replay_with_another_configuration_shows_the_differences(recorded, tmp_path):
     p = _replay(recorded.daemon_mcap, "--compare", "--set", "estimator.pixel_sigma_px=0.9", returncode=EXIT_DIFFERENT)

@@ -89,6 +89,7 @@ from onboard.app.recorded_messages import (  # noqa: E402
     unread_version,
 )
 from onboard.core.errors import InputError, IrtrackError  # noqa: E402
+from onboard.core.status import STATUS_SCHEMA  # noqa: E402
 from onboard.io.foxglove_messages import OBJECTS_SCHEMA, irframe_from_rawimage  # noqa: E402
 from onboard.io.mcap_read import FrameRef, read_recording  # noqa: E402
 from onboard.io.record import FRAME_INPUT_TOPIC, IMAGING_POSE_TOPIC, TRUTH_TOPIC, pose_from_json  # noqa: E402
@@ -145,6 +146,10 @@ class Recording:
     counts: dict
     objects: list = field(default_factory=list)
     imaging_poses: dict = field(default_factory=dict)  # (seq, time_boot_us) -> irtrack.imaging_pose/1 dicts in order
+    # the recorded daemon's status messages, (log time ns, JSON bytes as published), and each frame input's log time:
+    # the live view shows the status as it was, between the frames it came between
+    statuses: list = field(default_factory=list)
+    input_log_ns: list = field(default_factory=list)
 
 
 def load_recording(path: str) -> Recording:
@@ -160,6 +165,8 @@ def load_recording(path: str) -> Recording:
     frames: dict = {}
     inputs, tracks, truth, objects = [], [], [], []
     imaging_poses: dict = {}
+    statuses: list = []
+    input_log_ns: list = []
     counts: dict[str, int] = {}
     first = last = None
     truncated = None
@@ -186,6 +193,10 @@ def load_recording(path: str) -> Recording:
                 frames.setdefault((m.sequence, t_us), []).append((ref, m.publish_time_ns))
             elif m.topic == FRAME_INPUT_TOPIC:
                 inputs.append(json_object(m.data, ("seq", "time_boot_us", "received_ns"), pose=True))
+                input_log_ns.append(m.log_time_ns)
+            elif m.schema == STATUS_SCHEMA:
+                json_object(m.data, ())  # shown in a live view as recorded: a JSON object, or damage named here
+                statuses.append((m.log_time_ns, bytes(m.data)))
             elif m.schema.startswith("irtrack.track/"):
                 tracks.append(track_row(m.data))
             elif m.topic == TRUTH_TOPIC:
@@ -201,7 +212,22 @@ def load_recording(path: str) -> Recording:
             ) from None
     if truncated is not None and not counts:
         raise InputError(f"{path}: file cut short before its first message ({truncated})")
-    return Recording(path, meta, frames, inputs, tracks, truth, first, last, truncated, counts, objects, imaging_poses)
+    return Recording(
+        path,
+        meta,
+        frames,
+        inputs,
+        tracks,
+        truth,
+        first,
+        last,
+        truncated,
+        counts,
+        objects,
+        imaging_poses,
+        statuses,
+        input_log_ns,
+    )
 
 
 def no_frames_text(rec: Recording) -> str:
@@ -460,10 +486,21 @@ def replay(
     missing = refused = fed = 0
     rx0 = None
     interrupted = False
+    shown_statuses = 0  # the recorded statuses put on the live view so far
+
+    def show_statuses(until_ns: float) -> None:  # the recorded status messages logged before until_ns
+        nonlocal shown_statuses
+        while shown_statuses < len(rec.statuses) and rec.statuses[shown_statuses][0] <= until_ns:
+            if live is not None:
+                live.on_status(rec.statuses[shown_statuses][1])
+            shown_statuses += 1
+
     try:
         for i, inp, frame in _frames_taken(rec):
             if on_input is not None:
                 on_input(i + 1)
+            if live is not None and i < len(rec.input_log_ns):
+                show_statuses(rec.input_log_ns[i])
             if frame is None:
                 missing += 1
                 continue
@@ -501,6 +538,8 @@ def replay(
             out.append(obj)
             if on_track is not None:
                 on_track(obj)
+        if live is not None:
+            show_statuses(math.inf)  # the last ones (the daemon's status as it stopped)
     except KeyboardInterrupt:  # Ctrl-C: what was replayed so far is the result
         interrupted = True
     finally:
