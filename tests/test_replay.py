@@ -307,6 +307,11 @@ def test_a_worker_recording_is_compared_within_its_own_sigma_and_says_why(record
         "(max 7.07" in p.stdout
     ), p.stdout
     assert lines[-1].startswith(f"compare: {n - 2}/{n} frames identical, 2 differ"), lines[-1]
+    # the per-frame lines come after a header saying they are expected for a worker's recording (a newcomer read 78
+    # of them as failures of a run that exited 0)
+    header = next(i for i, ln in enumerate(lines) if ln.startswith("compare: 2 frames differ in their fields"))
+    first_seq = next(i for i, ln in enumerate(lines) if ln.startswith("seq "))
+    assert header < first_seq and "a worker's recording: expected" in lines[header]
 
 
 @pytest.mark.integration
