@@ -321,6 +321,9 @@ class MavlinkVehicle:
         self._companion_heard = False
         self._loiter_after_companion = 0
         self._setpoints: list[tuple[float, float, float]] = []
+        # the hand-over and the first setpoint flown are said once each: from the simulator's side nothing else shows
+        # that the vehicle flew the companion's setpoints
+        self._said: set[str] = set()
         for name, v in (("sysid", sysid), ("compid", compid)):
             if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= 255:
                 raise MavlinkConfigError(f"MavlinkVehicle.{name} must be an integer in [1, 255], got {v!r}")
@@ -537,6 +540,11 @@ class MavlinkVehicle:
         if self._companion_heard and self._loiter_after_companion < 1:
             self._loiter_after_companion += 1  # this LOITER one reaches the companion listening
             return ARDUCOPTER_LOITER_MODE
+        if self.in_guided and "guided" not in self._said:
+            self._said.add("guided")
+            log.info(
+                "guided: the companion heard; mode LOITER -> GUIDED (the pilot's hand-over): its setpoints are flown"
+            )
         return ARDUCOPTER_GUIDED_MODE if self.in_guided else ARDUCOPTER_LOITER_MODE
 
     def _gcs_message(self, msg_id: int, now: int, state: VehicleState | None):
@@ -648,6 +656,10 @@ class MavlinkVehicle:
     def take_setpoints(self) -> list[tuple[float, float, float]]:
         """The velocity setpoints (NED m/s) received since the last call, oldest first (``guided`` only)."""
         out, self._setpoints = self._setpoints, []
+        if out and "setpoint" not in self._said:
+            self._said.add("setpoint")
+            n, e, d = out[0]
+            log.info("guided: first velocity setpoint flown: north %.2f east %.2f down %.2f m/s", n, e, d)
         return out
 
     def _on_timesync(self, msg) -> int:

@@ -142,7 +142,8 @@ def test_eval_with_guidance_through_a_gnss_dropout_keeps_the_frames_it_has_fed_p
 
 
 @pytest.mark.integration
-def test_guided_vehicle_reports_guided_and_takes_the_companions_velocity_setpoints():
+def test_guided_vehicle_reports_guided_and_takes_the_companions_velocity_setpoints(caplog):
+    import logging
     import time
 
     from groundsim.io.mavlink_vehicle import (
@@ -154,6 +155,7 @@ def test_guided_vehicle_reports_guided_and_takes_the_companions_velocity_setpoin
     from groundsim.io.ports import free_udp_port
     from onboard.io.mavlink_wire import SetPositionTargetLocalNed, mavlink2
 
+    caplog.set_level(logging.INFO, "groundsim.io.mavlink_vehicle")
     port = free_udp_port()
     rx = open_mavlink2(f"udpin:127.0.0.1:{port}", 1, 191)  # the companion's side
     vehicle = MavlinkVehicle(f"udpout:127.0.0.1:{port}", guided=True)
@@ -204,6 +206,12 @@ def test_guided_vehicle_reports_guided_and_takes_the_companions_velocity_setpoin
             got += vehicle.take_setpoints()
             time.sleep(0.002)
         assert got == [(2.0, -3.0, 0.5)]
+        # said once each, from the simulator's side (nothing else there showed the vehicle flew the setpoints)
+        said = [r.getMessage() for r in caplog.records if r.name == "groundsim.io.mavlink_vehicle"]
+        assert sum("LOITER -> GUIDED" in m for m in said) == 1, said
+        assert [m for m in said if "first velocity setpoint" in m] == [
+            "guided: first velocity setpoint flown: north 2.00 east -3.00 down 0.50 m/s"
+        ]
     finally:
         vehicle.close()
         rx.close()
