@@ -678,6 +678,15 @@ def test_a_camera_gap_stops_the_setpoints_saying_so_and_a_pose_stamp_that_is_not
     assert not d.send and d.state == "waiting" and d.why.startswith("no camera frame")
 
 
+def _ranging_track(**kw):
+    """A track at 135, 50, -80 m NED whose range sigma is half its range (a manoeuvre helps: advice is planned)."""
+    p = np.array([135.0, 50.0, -80.0])
+    cam = _pose().p_cam_ned_m
+    u = (p - cam) / np.linalg.norm(p - cam)
+    cov = 4.0 * np.eye(3) + (0.5 * np.linalg.norm(p - cam)) ** 2 * np.outer(u, u)
+    return _track(5_000_000, p, (-3.0, -2.0, 0.0), cov, **kw)
+
+
 def test_a_newer_answer_or_another_target_ends_the_advice_in_force():
     """The advice in force was replaced only by a newer recommended one: after an 'observable' answer, a lost target
     or a switch to another, the old manoeuvre kept going out for up to valid_for_s."""
@@ -685,11 +694,7 @@ def test_a_newer_answer_or_another_target_ends_the_advice_in_force():
 
     now = [100.0]
     tap, _link, _sent = _in_loop_tap(now)
-    p = np.array([135.0, 50.0, -80.0])
-    cam = _pose().p_cam_ned_m
-    u = (p - cam) / np.linalg.norm(p - cam)
-    cov = 4.0 * np.eye(3) + (0.5 * np.linalg.norm(p - cam)) ** 2 * np.outer(u, u)
-    track = _track(5_000_000, p, (-3.0, -2.0, 0.0), cov)
+    track = _ranging_track()
     assert tap.step(track, _pose(), now[0]) is not None and tap._advice is not None
     tap.on_frame(None, FrameResult(0, True, _pose(), None, None))  # a frame without a track says nothing
     assert tap._advice is not None
@@ -734,11 +739,7 @@ def test_an_advice_ends_with_its_estimate_and_is_not_renewed_for_a_target_nobody
 
     now = [100.0]
     tap, link, sent = _in_loop_tap(now)
-    p = np.array([135.0, 50.0, -80.0])
-    cam = _pose().p_cam_ned_m
-    u = (p - cam) / np.linalg.norm(p - cam)
-    cov = 4.0 * np.eye(3) + (0.5 * np.linalg.norm(p - cam)) ** 2 * np.outer(u, u)
-    track = _track(5_000_000, p, (-3.0, -2.0, 0.0), cov, track_id=1, estimate_epoch=2)
+    track = _ranging_track(track_id=1, estimate_epoch=2)
     tap.on_frame(None, FrameResult(0, True, _pose(), track, None))
     assert tap.plan_pending() is not None and tap._advice is not None
     link.autopilot_mode = GUIDED
