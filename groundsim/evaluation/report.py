@@ -10,7 +10,8 @@ TUM trajectory format (one pose per line, as read by evo's ``file_interface.read
 ``timestamp``: the frame's capture time in seconds on the vehicle's boot clock (``time_boot_us /
 1e6``, microsecond resolution); ``tx ty tz``: the target's position in the scenario's local NED frame,
 metres (north, east, down); the orientation is the identity (``0 0 0 1``: evo wants a unit
-quaternion, the target's attitude is not estimated).  ``truth.tum`` holds every frame,
+quaternion, the target's attitude is not estimated).  ``truth.tum`` holds every frame processed (the last one or
+two, after the flight's last telemetry sample, have no pose and are not),
 ``estimate.tum`` the frames where the online track reported a 3-D position flagged observable (the
 daemon publishes the unobservable ones too, flagged so, unless ``output.unobservable_positions`` is
 false), ``estimate_perfect.tum`` the perfect-centroid baseline's observable frames.
@@ -704,7 +705,7 @@ def _markdown(report: dict, descriptions: dict, result) -> str:
     L.append("")
     L.append("## TUM trajectories\n")
     L.append(
-        "Per run: `<scenario>/seed<N>/truth.tum` (every frame), `estimate.tum` (online track, observable frames), "
+        "Per run: `<scenario>/seed<N>/truth.tum` (every frame processed), `estimate.tum` (online track, observable frames), "
         "`estimate_perfect.tum` (perfect-centroid baseline). Columns `timestamp tx ty tz qx qy qz qw`: boot-clock "
         "seconds, local NED metres about the scenario origin, identity attitude. Score one with evo:\n"
     )
