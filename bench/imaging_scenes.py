@@ -1,6 +1,6 @@
 """The image chain over rendered scene frames, scored against every object's truth.
 
-``python -m bench.imaging --scene C1 C2 C3 C4 C5 P2 [--chain tracker|objects|objects-notbd|both] [--seed 0 [1 ...]]
+``python -m bench.imaging --scene C1 C2 C3 C4 C5 P2 [--chain tracker|single|objects|objects-notbd|both] [--seed 0 [1 ...]]
 [--frames N] [--duration S] [--nav-noise CASE] [--cache DIR] [--repeat N] [--encoding mono8|mono16] [--terrain-resolution full|half] [--stages] [--misses]``.  Each scenario is rendered through ``groundsim.world.sim.SimCore``
 (its own scene, camera model and flown poses; frames the camera dropped are skipped, as the daemon
 never receives them) and the frames are fed in lockstep to
@@ -306,6 +306,8 @@ class _ObjectsNoTbdChain(_ObjectsChain):
 
 
 CHAINS = {"tracker": _TrackerChain, "objects": _ObjectsChain, "objects-notbd": _ObjectsNoTbdChain}
+#: the names the daemon's imaging.chain, eval --tracker and bench.companion --chain give the chains
+CHAIN_ALIASES = {"single": "tracker"}
 
 
 def score(run: SceneRun, chain) -> dict[str, float]:
@@ -604,9 +606,10 @@ def main(argv: list[str]) -> None:
     )
     ap.add_argument(
         "--chain",
-        choices=(*CHAINS, "both"),
+        choices=(*CHAINS, *CHAIN_ALIASES, "both"),
         default="both",
-        help="tracker: the single chain (imaging.chain single); objects: the daemon's default; both (default)",
+        help="tracker (or single): the single chain (imaging.chain single); objects: the daemon's default; both "
+        "(default)",
     )
     ap.add_argument(
         "--seed",
@@ -653,7 +656,7 @@ def main(argv: list[str]) -> None:
     ap.add_argument("--misses", action="store_true", help="the target's missed frames below each row")
     a = ap.parse_args(argv)
     cv2.setNumThreads(1)
-    chains = ("tracker", "objects") if a.chain == "both" else (a.chain,)
+    chains = ("tracker", "objects") if a.chain == "both" else (CHAIN_ALIASES.get(a.chain, a.chain),)
     print(
         f"image chain over rendered scenes (seed {', '.join(map(str, a.seed))}); match {MATCH_PX:.0f} px, Pd over contrast >= "
         f"{MIN_CONTRAST_NETD:.0f} NETD after {SETTLE_S:.0f} s visible; the chains given the camera attitude with the"

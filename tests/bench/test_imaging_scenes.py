@@ -290,3 +290,13 @@ def test_repeated_runs_keep_each_frames_least_time_for_the_summary(monkeypatch):
     s = sc.score_repeated(None, lambda run, stages: None, 2)
     assert s["cpu_ms_frames"] == [2.0, 1.0, 1.0] and s["ms_frames"] == [2.0, 1.0, 1.0]
     assert s["cpu_ms_p50"] == 1.0
+
+
+def test_chain_single_is_the_tracker_chain_as_the_daemon_names_it(tmp_path, capsys):
+    """imaging.chain, eval --tracker and bench.companion --chain call it 'single'; this bench refused the name
+    ('invalid choice') and knew it only as 'tracker' (a newcomer's walkthrough)."""
+    from bench.imaging_scenes import main
+
+    main(["--scene", "P2", "--chain", "single", "--frames", "3", "--cache", str(tmp_path)])
+    rows = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("P2 ")]
+    assert len(rows) == 1 and rows[0].split()[1] == "tracker"
