@@ -37,8 +37,8 @@ at 30 Hz then cost one solve per period instead of about two, at no latency from
 Bad input never stops it and never becomes a fused point: it is counted by reason and logged at most once per
 ``--reject-log-interval-s`` per reason: ``bad_vehicle_name`` (a key chunk that is no daemon's vehicle name: no
 output key could carry it), ``not_json``, ``bad_track`` (the schema's reader names the key; an origin's altitude
-outside ``ORIGIN_ALT_RANGE_M`` too), ``vehicle_not_configured`` (a vehicle outside ``--vehicles``, INFO: a name
-mistyped there shows), ``too_many_vehicles`` (a new name while ``MAX_VEHICLES`` are heard and none is silent; a
+outside ``ORIGIN_ALT_RANGE_M`` too), ``vehicle_not_configured`` (a vehicle outside ``--vehicles``, a WARNING naming a close
+configured name: a name mistyped there shows), ``too_many_vehicles`` (a new name while ``MAX_VEHICLES`` are heard and none is silent; a
 silent one is forgotten to make room), ``bad_time_unix_us``, ``no_origin``, ``stale`` /
 ``future`` (common time more than ``--max-age-s`` before or after this machine's clock), ``stamp_jump`` (a stamp
 whose ``UTC - boot`` offset jumped from its vehicle's: held until the next stamps say glitch or step,
@@ -77,6 +77,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import difflib
 import json
 import logging
 import math
@@ -334,9 +335,12 @@ class Fusion:
         if vehicle is None:
             return  # the fusion's own output
         if self.vehicles is not None and vehicle not in self.vehicles:
-            # not asked for: counted (a name mistyped in --vehicles shows here), not fused
+            # not asked for: counted, not fused; a WARNING, since a name mistyped in --vehicles shows only here (its
+            # vehicle then fuses nothing, and the others' rays read as unpaired)
+            close = difflib.get_close_matches(vehicle, self.vehicles, n=1)
+            hint = f" (did you mean {close[0]!r} in --vehicles? it is {vehicle!r} on the wire)" if close else ""
             self.counter.count(
-                "vehicle_not_configured", f"{key}: not one of --vehicles {' '.join(self.vehicles)}", level=logging.INFO
+                "vehicle_not_configured", f"{key}: not one of --vehicles {' '.join(self.vehicles)}{hint}"
             )
             return
         self.received += 1

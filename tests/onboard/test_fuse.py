@@ -4,6 +4,7 @@ process between two synthetic vehicles and a subscriber on loopback zenoh."""
 from __future__ import annotations
 
 import json
+import logging
 import subprocess
 import sys
 import threading
@@ -171,12 +172,16 @@ def test_bad_input_is_counted_by_reason_and_never_becomes_a_fused_point(payload,
     assert fusion.tracker.targets == ()
 
 
-def test_its_own_output_and_other_vehicles_are_not_input():
-    fusion = new_fusion(vehicles=["uav1", "uav2"])
+def test_its_own_output_and_other_vehicles_are_not_input(caplog):
+    fusion = new_fusion(vehicles=["uav1", "uva2"])  # uav2 mistyped
     fusion.receive(fleet_track_key(), b"{}", T0_UNIX_S)
-    fusion.receive("irtrack/uav9/track", b"{}", T0_UNIX_S)
-    # not fused, but a vehicle outside --vehicles is counted: a name mistyped there shows
+    with caplog.at_level(logging.WARNING):
+        fusion.receive("irtrack/uav2/track", b"{}", T0_UNIX_S)
+    # not fused, but a vehicle outside --vehicles is counted and warned of, naming the close configured name (it was
+    # an INFO line with no hint, and the other vehicle's rays were then warned of as unpaired)
     assert fusion.received == 0 and fusion.counter.counts == {"vehicle_not_configured": 1}
+    (warned,) = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert "did you mean 'uva2' in --vehicles? it is 'uav2' on the wire" in warned
     assert vehicle_from_track_key("irtrack/fleet/track") is None
     assert vehicle_from_track_key("irtrack/uav1/fleet/track") is None
     assert vehicle_from_track_key("irtrack/uav1/track") == "uav1"
