@@ -137,6 +137,8 @@ POLL_S = 0.1
 INBOX_MAX = 3000
 #: messages fused per turn of the main loop before it publishes what is due: a flood must not starve the output
 MAX_PER_TURN = 300
+#: a node that has received no track this long after its start says so, once
+NOTHING_HEARD_S = 5.0
 #: vehicles the fusion keeps state for at most: a new name beyond them takes the place of the longest silent one,
 #: or is refused (too_many_vehicles) while none is silent, rather than growing the status, the per-vehicle outputs
 #: and their publishers without bound
@@ -926,9 +928,25 @@ def _main(argv: Sequence[str] | None) -> int:
         deadline = None if args.seconds == 0 else time.monotonic() + args.seconds
         next_status = time.monotonic() + args.status_interval_s
         next_watch = time.monotonic() + WATCH_INTERVAL_S
+        # a node that hears nothing said nothing until its stop line's zeros: said once, with where it listens
+        quiet_until: float | None = time.monotonic() + NOTHING_HEARD_S
         while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
             item = inbox.get(POLL_S)
             idle = item is None
+            if item is not None:
+                quiet_until = None
+            elif quiet_until is not None and time.monotonic() >= quiet_until:
+                quiet_until = None
+                log.warning(
+                    "nothing received on %s for %.0f s (%s; dialing gossiped peers %s): check that the daemons run "
+                    "and publish, and that this node reaches them (a peer that only dials a router hears the "
+                    "daemons behind it only with --zenoh-gossip-autoconnect, or run this node as the router: "
+                    "docs/fleet.md)",
+                    TRACKS_KEY_EXPR,
+                    NOTHING_HEARD_S,
+                    ", ".join(where) or "zenoh's defaults",
+                    "on" if settings.gossip_autoconnect else "off",
+                )
             drain(inbox, fusion, item)
             for key, payload in fusion.flush(force=idle):  # idle: whatever is pending, due or not
                 pub = publishers.get(key)

@@ -1071,3 +1071,18 @@ def test_a_vehicle_whose_elevation_is_1_deg_off_fuses_within_its_prior_and_is_na
     else:
         assert fleet == [] and st["rays"] == 120
         assert st["events"]["ray_unpaired"] >= 59 and "ray_unpaired" in EVENTS
+
+
+@pytest.mark.integration
+def test_a_fusion_node_that_hears_nothing_says_so(monkeypatch, capsys):
+    """A fusion peer that reached no daemon (it dialed a router without --zenoh-gossip-autoconnect) stayed silent
+    for its whole run, its stop line's zeros the only trace (a walkthrough of docs/fleet.md); it warns once, naming
+    where it listens and the gossip switch."""
+    import onboard.app.fuse as fuse_app
+    from groundsim.io.ports import free_tcp_port
+
+    monkeypatch.setattr(fuse_app, "NOTHING_HEARD_S", 0.3)
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    assert fuse_app.main(["--zenoh-listen", endpoint, "--seconds", "1.2"]) == 0  # it sets up its own log handler
+    warned = [ln for ln in capsys.readouterr().err.splitlines() if "nothing received" in ln]
+    assert len(warned) == 1 and endpoint in warned[0] and "--zenoh-gossip-autoconnect" in warned[0]
