@@ -263,7 +263,9 @@ def gallery_image(pixels: np.ndarray, labels, truth=None) -> np.ndarray:
 
 
 def write_gallery(scenario, out_dir, run_seed: int = 0, t_s: float = GALLERY_FRAME_S) -> Path:
-    """``<out_dir>/<scenario>.png``: :func:`gallery_image` of the frame nearest ``t_s`` as the scenario outputs it."""
+    """``<out_dir>/<scenario>.png``: :func:`gallery_image` of the frame nearest ``t_s`` as the scenario outputs it
+    (the first one after it that the camera delivered, where its model dropped that one: a shutter closed for a flat
+    field correction at that time stopped the whole command)."""
     import cv2
 
     from groundsim.evaluation.out_dir import make_out_dir
@@ -272,10 +274,13 @@ def write_gallery(scenario, out_dir, run_seed: int = 0, t_s: float = GALLERY_FRA
     core = SimCore(scenario, run_seed, render=True, flight_chunk_s=1.0)
     k_show = min(int(round(t_s * core.frame_rate_hz)), core.frame_count - 1)
     fr = None
-    for k in range(k_show + 1):  # every frame up to it: the camera model's AGC follows the scene in time
+    k = 0
+    # every frame up to it: the camera model's AGC follows the scene in time
+    while k < core.frame_count and (k <= k_show or fr is None or fr.pixels is None):
         fr = core.frame(k)
-    if fr.pixels is None:
-        raise ConfigError(f"{scenario.name}: frame {k_show} was dropped by the camera model; choose another time")
+        k += 1
+    if fr is None or fr.pixels is None:
+        raise ConfigError(f"{scenario.name}: the camera model dropped every frame from {k_show} on: no picture")
     out = make_out_dir(out_dir, "--gallery")
     path = out / f"{scenario.name}.png"
     if not cv2.imwrite(str(path), gallery_image(fr.pixels, fr.labels, fr.truth), [cv2.IMWRITE_PNG_COMPRESSION, 9]):

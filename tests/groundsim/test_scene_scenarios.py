@@ -640,3 +640,35 @@ def test_scenes_interrupted_after_a_picture_says_it_was_written(tmp_path, capsys
     monkeypatch.setattr(scenes, "measure_scene", ctrl_c)
     assert main(["scenes", "--scenario", "C4", "C5", "--gallery", str(tmp_path)]) == 130
     assert capsys.readouterr().err.strip().splitlines()[-1] == f"interrupted: 1 picture(s) written in {tmp_path}"
+
+
+def test_the_gallery_takes_the_next_delivered_frame_when_the_camera_dropped_its_time(tmp_path):
+    """A flat-field correction whose shutter drops the frame at the gallery's time (5 s) ended the command with 'frame
+    150 was dropped by the camera model; choose another time', with no option to choose one and no other scenario
+    done (a walkthrough of docs/scenes.md); the picture is of the next frame the camera delivered."""
+    import yaml
+
+    from groundsim.evaluation.scenes import write_gallery
+    from groundsim.world.scenario import load_scenario
+
+    spec = {
+        "name": "ffc_at_5s",
+        "duration_s": 6.0,
+        "observer": {
+            "motion": {
+                "model": "circular",
+                "center_ned_m": [0, 0, -70],
+                "radius_m": 40,
+                "azimuth0_deg": 0,
+                "rate_degps": 12,
+            }
+        },
+        "target": {"motion": {"model": "uniform_linear", "p0_ned_m": [150, -40, -90], "v0_ned_mps": [0, 5, 0]}},
+        "scene": {
+            "sensor": {"enabled": True, "ffc": {"enabled": True, "period_s": 3, "first_s": 2, "mode": "dropped"}}
+        },
+    }
+    path = tmp_path / "ffc_at_5s.yaml"
+    path.write_text(yaml.safe_dump(spec))
+    out = write_gallery(load_scenario(str(path)), tmp_path / "gallery")
+    assert out.name == "ffc_at_5s.png" and out.stat().st_size > 1000
