@@ -627,18 +627,22 @@ class OnboardService:
     def _watch(self, now: float) -> None:
         with self._stats_lock:
             frames_in = self.frames_in
-        rx = None
+        rx = refused = None
         open_error = None
         if self.link is not None:
             open_error = self.link.open_error
             try:
-                rx = int(self.link.status().messages_rx)
+                st = self.link.status()
+                # the messages signing refused say nothing of the autopilot: a sender with another key is no link
+                refused = int(st.messages_refused)
+                rx = int(st.messages_rx) - refused
             except Exception as exc:  # noqa: BLE001 - a status snapshot must not stop the loop
                 self.counter.count("mavlink_loop_error", f"status: {type(exc).__name__}: {exc}")
         self.watchdog.step(
             now,
             frames_in=frames_in,
             mavlink_rx=rx,
+            mavlink_refused=refused,
             mavlink_open_error=open_error,
             rotation=(self.pose.newest_rotation_time_boot_us(), self.mount.gimballed),
         )

@@ -214,6 +214,7 @@ class Watchdog:
         self._rotation_since_s = float(started_s)
         self._frames_seen = 0
         self._mavlink_seen = 0
+        self._mavlink_refused_seen = 0  # MAVLink messages signing refused, the running count
         self._high_since_s: float | None = None
         self._high_n = 0
         self._high_max = 0.0
@@ -241,12 +242,14 @@ class Watchdog:
         mavlink_rx: int | None = None,
         mavlink_open_error: str | None = None,
         rotation: tuple[int | None, bool] | None = None,
+        mavlink_refused: int | None = None,
     ) -> None:
         """Update with the running counts of frames received and MAVLink messages, then check the timeouts.
         ``mavlink_open_error``: why the MAVLink connection could not be opened (None: it is open), which the
         ``no_mavlink`` warning then names instead of the far end.  ``rotation``: (the newest time the camera's
         rotation streams cover, the pose buffer's, None while there is none; whether the mount is gimballed), for
-        ``no_attitude`` (None: not watched)."""
+        ``no_attitude`` (None: not watched).  ``mavlink_refused``: the running count of MAVLink messages signing
+        refused (not in ``mavlink_rx``): while they grow and nothing is taken, ``no_mavlink`` says the keys differ."""
         # the attitude's silence counts from when frames and MAVLink both arrive again, not through their own
         if now_s - self._last_frame_s >= INPUTS_LIVE_S or now_s - self._last_mavlink_s >= INPUTS_LIVE_S:
             self._rotation_since_s = max(self._rotation_since_s, float(now_s))
@@ -257,6 +260,10 @@ class Watchdog:
             self._mavlink_seen = mavlink_rx
             self._last_mavlink_s = float(now_s)
             self._clear("no_mavlink")
+        refused_now = False
+        if mavlink_refused is not None:
+            refused_now = mavlink_refused > self._mavlink_refused_seen
+            self._mavlink_refused_seen = mavlink_refused
         if rotation is not None:
             self._rotation(now_s, *rotation)
         t = self.input_timeout_s
@@ -267,6 +274,13 @@ class Watchdog:
             if now_s - last_s >= t:
                 what, where = _SILENT_INPUT[code]
                 ever = "since the last one" if seen else "since start"
+                if code == "no_mavlink" and refused_now and not mavlink_open_error:
+                    # packets arrive and signing refuses every one: no silence far away, a key here or there
+                    where = (
+                        "'{mavlink_connection}': MAVLink arrives but signing refuses every packet (rejected: "
+                        "mavlink_signature_bad, _replay or _stale): the sender's key differs from "
+                        "mavlink.signing_key_file, or the sender does not sign"
+                    )
                 if code == "no_mavlink" and mavlink_open_error:
                     # nothing can arrive on a connection that is not open: say why it is not, not what to check far away
                     where = (

@@ -220,6 +220,8 @@ class LinkStatus:
     link_losses: int
     reboots: int
     gnss: dict[str, Any] | None = None  # GnssState.summary of the latest GPS_RAW_INT; None until one
+    #: of messages_rx, those refused by MAVLink 2 signing (a bad signature, a replay, a stale timestamp)
+    messages_refused: int = 0
     #: per requested stream (by message name): msg_id, requested_hz, measured_hz over the last seconds (None at first)
     streams: dict[str, dict[str, Any]] = field(default_factory=dict)
 
@@ -360,6 +362,7 @@ class MavlinkLink:
         self._boot_seen: tuple[int, int] | None = None  # (our clock_ns, time_boot_us) of the newest attitude
         self._seen_reboots = pose_buffer.reboots
         self.messages_rx = 0
+        self.messages_refused = 0  # of them, refused by signing: they say nothing of the autopilot
         self.link_losses = 0
         self._open(self._now())
 
@@ -591,6 +594,7 @@ class MavlinkLink:
             reason = str(getattr(msg, "reason", ""))
             refused = signature_refusal(msg, sig_reject, "mavlink")
             if refused is not None:
+                self.messages_refused += 1
                 self._counters.count(refused, "packet refused: MAVLink 2 signing is on")
             else:
                 self._counters.count("mavlink_bad_data", reason)
@@ -978,6 +982,7 @@ class MavlinkLink:
             rates_refused=tuple(sorted(self.rates_refused)),
             clock_synced=self.clock_sync.synced,
             messages_rx=self.messages_rx,
+            messages_refused=self.messages_refused,
             link_losses=self.link_losses,
             reboots=self._pose.reboots,
             gnss=None if self.gnss is None else self.gnss.summary(now),

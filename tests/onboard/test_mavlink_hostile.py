@@ -305,6 +305,8 @@ def test_signed_link_refuses_unsigned_v1_wrong_key_and_replayed_packets(signed_r
     assert (c["mavlink_unsigned"], c["mavlink_v1_refused"], c["mavlink_signature_bad"]) == (1, 1, 1)
     assert r.pose.sizes()["attitude"] == 1
     assert stranger.received() == []
+    # the link's own count of them, which the watchdog keeps out of "MAVLink heard" (a wrong key is no link)
+    assert r.link.status().messages_refused == 5
 
 
 def test_signing_key_sources_and_errors(tmp_path):

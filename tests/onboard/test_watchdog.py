@@ -51,6 +51,19 @@ def test_no_mavlink_on_a_connection_that_cannot_open_says_why_not_what_to_check_
     assert "another program" in mav and "mavlink-router sends there" not in mav
 
 
+def test_no_mavlink_while_signing_refuses_every_packet_says_the_keys_differ(caplog):
+    """A sender signing with another key: every packet refused, and 'no_mavlink' was cleared by them (a walkthrough
+    of deploy/README's signing: one mavlink_signature_bad line, then 'no_mavlink cleared'). Refused messages are not
+    the autopilot heard, and the warning says why nothing is taken."""
+    wd = _wd()
+    with caplog.at_level(logging.INFO, logger="onboard.app.watchdog"):
+        for i in range(60):  # 6 s: packets arrive, every one refused by signing
+            wd.step(100.0 + 0.1 * i, frames_in=0, mavlink_rx=0, mavlink_refused=10 * i)
+    mav = next(m for m in _warnings(caplog) if m.startswith("no_mavlink"))
+    assert CONN in mav and "signing refuses every packet" in mav and "key differs" in mav
+    assert "no_mavlink" in {w.code for w in wd.active}
+
+
 def test_inputs_clear_the_warnings_and_a_relapse_is_not_warned_again(caplog):
     wd = _wd()
     with caplog.at_level(logging.INFO, logger="onboard.app.watchdog"):
