@@ -16,6 +16,8 @@ from onboard.core.errors import ConfigError
 __all__ = ["SigningKeyError", "signing_key_from_text", "load_signing_key"]
 
 _KEY_FORMS = "32 raw bytes, 64 hex digits or a passphrase"
+#: text of hex digits alone this long or longer is a key in hex (and must be 64 digits), not a passphrase
+HEX_LOOKING_MIN = 32
 
 
 class SigningKeyError(ConfigError):
@@ -41,9 +43,24 @@ def signing_key_from_text(text: str | bytes, field: str, where: str = "") -> byt
     text = text.strip()
     if not text:
         raise SigningKeyError(field, _KEY_FORMS, f"an empty key{where}")
-    if re.fullmatch(r"[0-9a-fA-F]{64}", text):
-        return bytes.fromhex(text)
+    digits = re.sub(r"\s+", "", text)
+    if re.fullmatch(r"[0-9a-fA-F]+", digits) and len(digits) >= HEX_LOOKING_MIN:
+        # hex digits only: meant as a key in hex (od's spaced output is one), never a passphrase, which a typo in
+        # the digits would silently have made of it (62 digits hashed into another key than the autopilot's)
+        if len(digits) != 64:
+            raise SigningKeyError(field, "64 hex digits for a key in hex", f"{len(digits)} hex digits{where}")
+        return bytes.fromhex(digits)
     return hashlib.sha256(text.encode("utf-8")).digest()
+
+
+def _is_text_line(data: bytes) -> bool:
+    """Whether 32 bytes are a line of text (printable, ending in a newline): a 31-character passphrase and its
+    newline, not a raw key (random bytes are all printable with a chance of about 1e-13)."""
+    try:
+        line = data.decode("utf-8")
+    except UnicodeDecodeError:
+        return False
+    return line.endswith("\n") and line[:-1].rstrip("\r").isprintable()
 
 
 def load_signing_key(key_file: str | None, key_env: str | None, environ=None) -> bytes | None:
@@ -63,7 +80,9 @@ def load_signing_key(key_file: str | None, key_env: str | None, environ=None) ->
                 "mavlink.signing_key_file", "a readable key file", f"{key_file!r}: {exc.strerror or exc}"
             ) from None
         return signing_key_from_text(
-            data if len(data) == 32 else data.strip(), "mavlink.signing_key_file", f" in {key_file!r}"
+            data if len(data) == 32 and not _is_text_line(data) else data.strip(),
+            "mavlink.signing_key_file",
+            f" in {key_file!r}",
         )
     if key_env:
         if key_env not in environ:

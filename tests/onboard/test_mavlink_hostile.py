@@ -334,6 +334,28 @@ def test_signing_key_sources_and_errors(tmp_path):
     assert build_config({"mavlink": {"signing_key_file": str(f)}}).mavlink.signing_key() == KEY
 
 
+def test_a_key_in_hex_is_taken_as_hex_or_refused_and_a_passphrase_line_is_text(tmp_path):
+    """Mistakes --check passed, each silently a key other than the autopilot's (a walkthrough of deploy/README's
+    signing set-up): 62 hex digits hashed as a passphrase; od's spaced hex (the tr step forgotten) hashed as one; a
+    31-character passphrase and its newline (32 bytes) taken as a raw key, newline included."""
+    import hashlib
+
+    from onboard.core.errors import ConfigError
+    from onboard.io.mavlink_signing import load_signing_key
+
+    f = tmp_path / "key"
+    spaced = " ".join(KEY.hex()[i : i + 4] for i in range(0, 64, 4))  # od -An -tx1 style, the spaces not removed
+    f.write_text(spaced + "\n")
+    assert load_signing_key(str(f), None) == KEY
+    f.write_text(KEY.hex()[:62] + "\n")
+    with pytest.raises(ConfigError, match="expected 64 hex digits for a key in hex, got 62 hex digits"):
+        load_signing_key(str(f), None)
+    f.write_bytes(b"q" * 31 + b"\n")
+    assert load_signing_key(str(f), None) == hashlib.sha256(b"q" * 31).digest()
+    f.write_bytes(bytes(range(22, 54)))  # 32 raw bytes: a key, whatever they spell
+    assert load_signing_key(str(f), None) == bytes(range(22, 54))
+
+
 def test_a_bad_signing_key_is_one_plain_line_naming_the_field_and_the_file(tmp_path):
     """It read "mavlink.signing_key_file (PATH): expected a readable ... key, got expected 32 raw bytes ..., got an
     empty key", the path inside the field's name (so the source was blamed as '(defaults) with --set')."""
