@@ -367,6 +367,30 @@ def _check_tls_files(config, where: str) -> None:
             raise ZenohConfigError(f"{where}: {name} {path}: not readable by this process (uid {os.getuid()})")
 
 
+def _warn_plain_beside_file(config, settings: ZenohConfig, file_option: str) -> None:
+    """Warn when the file's session is a client or links over TLS and the options add endpoints of their own: they
+    are opened beside the file's, outside its TLS and a router's access control (deploy/README.md asks for
+    ``zenoh.connect`` / ``zenoh.listen`` empty with such a file; a daemon left with the shipped config's loopback
+    listener accepted any local peer past the router's rules)."""
+    mode = json.loads(config.get_json("mode") or "null")
+    file_eps = _file_list(config, "connect/endpoints") + _file_list(config, "listen/endpoints")
+    tls = any(str(ep).startswith(("tls/", "quic/")) for ep in file_eps)
+    if mode != "client" and not tls:
+        return
+    extra = [*settings.connect, *settings.listen]
+    plain = [ep for ep in extra if not str(ep).startswith(("tls/", "quic/"))]
+    if not plain:
+        return
+    log.warning(
+        "%s %s is a %s session, and connect/listen add %s beside it: those links are outside the file's TLS and a "
+        "router's access control; give zenoh.connect: [] and zenoh.listen: [] (--set) to keep to the file's",
+        file_option,
+        settings.config_file,
+        "client" if mode == "client" else "TLS",
+        ", ".join(map(str, plain)),
+    )
+
+
 def build_config(settings: ZenohConfig, *, max_payload_bytes: int | None = None, file_option: str = "--zenoh-config"):
     """A ``zenoh.Config`` from ``settings`` (file first, then options on top).  No I/O but the file, whose
     errors name it after ``file_option`` (the daemon's ``zenoh.config_file``, a command's ``--zenoh-config``).
@@ -402,6 +426,8 @@ def build_config(settings: ZenohConfig, *, max_payload_bytes: int | None = None,
         config = zenoh.Config()
         scouting_in_file = None
 
+    if settings.config_file is not None and (settings.connect or settings.listen):
+        _warn_plain_beside_file(config, settings, file_option)
     for name in ("connect", "listen"):
         mine = list(getattr(settings, name))
         if mine:

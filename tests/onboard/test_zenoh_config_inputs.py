@@ -74,3 +74,24 @@ def test_a_tls_file_the_configuration_names_must_be_there(tmp_path, key):
     files[key].mkdir()
     with pytest.raises(ZenohConfigError, match="a folder, not a file"):
         build_config(ZenohConfig(config_file=str(cfg)))
+
+
+def test_plain_endpoints_beside_a_client_or_tls_file_are_warned_of(tmp_path, caplog):
+    """deploy/README asks for zenoh.connect / zenoh.listen empty with the ACL's client file; left at the shipped
+    config's loopback listener, the daemon listened on plain TCP beside the file's session, past the router's access
+    control, and nothing said so (a walkthrough of deploy/README)."""
+    import logging
+
+    client = tmp_path / "client.json5"
+    client.write_text('{ mode: "client", connect: { endpoints: ["tcp/127.0.0.1:7447"] } }\n', encoding="utf-8")
+    with caplog.at_level(logging.WARNING, "onboard.io.zenoh_session"):
+        build_config(ZenohConfig(config_file=str(client), listen=("tcp/127.0.0.1:17449",)))
+    (warned,) = [r.getMessage() for r in caplog.records]
+    assert "is a client session" in warned and "tcp/127.0.0.1:17449" in warned and "zenoh.listen: []" in warned
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, "onboard.io.zenoh_session"):
+        build_config(ZenohConfig(config_file=str(client)))  # endpoints cleared: the file's alone
+        peer = tmp_path / "peer.json5"
+        peer.write_text('{ mode: "peer" }\n', encoding="utf-8")
+        build_config(ZenohConfig(config_file=str(peer), listen=("tcp/127.0.0.1:17449",)))  # no TLS, no client
+    assert caplog.records == []
