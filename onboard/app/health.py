@@ -20,7 +20,7 @@ Contract between the daemon and the probe (the Dockerfile's ``HEALTHCHECK`` runs
   ``HEALTHCHECK --retries`` absorb.  A forward step behaves the same way.
 
 Exit codes follow Docker's HEALTHCHECK contract: 0 healthy, 1 unhealthy.  Docker reserves 2, so
-bad options are reported as unhealthy (1) with one line naming the option, never as argparse's 2.
+bad options are reported as unhealthy (1) with one "usage error" line naming the option, never as argparse's 2.
 One line goes to stdout either way (Docker keeps it in ``docker inspect``'s health log).
 
 Only the standard library is imported: the probe runs every few seconds and must start fast.
@@ -288,7 +288,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         path = args.file if args.file is not None else health_file_path()
         verdict = check_liveness(path, args.max_age_s)
     except _ProbeArgumentError as exc:
-        print(f"NOT alive: bad option: {exc}")
+        # the usage's mistake, not the daemon's state: said first (still exit 1, a HEALTHCHECK must not get 2); a
+        # typo read 'NOT alive: bad option ...' like a dead daemon (a walkthrough of deploy/README)
+        print(f"usage error (the daemon's liveness was not checked): {exc}; python -m onboard.health [--file PATH]")
         return EXIT_UNHEALTHY
     except ConfigError as exc:
         print(f"NOT alive: {exc}")

@@ -149,7 +149,12 @@ def test_main_in_process(tmp_path, capsys):
 
 @pytest.mark.parametrize(
     "args, needle",
-    [(["--max-age-s", "abc"], "bad option"), (["--max-age-s", "0"], "max_age_s"), (["--bogus"], "bad option")],
+    [
+        (["--max-age-s", "abc"], "usage error (the daemon's liveness was not checked)"),
+        (["--max-age-s", "0"], "max_age_s"),
+        (["--bogus"], "usage error (the daemon's liveness was not checked)"),
+        (["/var/run/irtrack-alive"], "usage error"),  # the file as a positional argument: a usage mistake
+    ],
 )
 def test_bad_options_are_unhealthy_never_docker_reserved_2(args, needle, capsys):
     assert health.main(args) == health.EXIT_UNHEALTHY
