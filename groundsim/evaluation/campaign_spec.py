@@ -346,7 +346,11 @@ def spec_from_dict(d, source="<dict>", spec_dir: Path | None = None) -> Campaign
         p = _resolve_scenario(s, spec_dir)
         if not p.is_file():
             known = ", ".join(reference_scenario_paths())
-            fail(f"scenarios[{i}]", f"a shipped scenario ({known}) or a scenario file", s)
+            fail.text(
+                f"scenarios[{i}]",
+                f"a shipped scenario ({known}) or a scenario file",
+                f"{s!r} (no file {p}: scenario files are relative to the spec's folder)",
+            )
         same = [j for j, q in enumerate(paths) if q.resolve() == p.resolve()]
         if same:  # P1, p1 and config/scenarios/P1.yaml are one scenario: its runs would share their run ids
             fail(f"scenarios[{i}]", f"a scenario not listed before (scenarios[{same[0]}] is the same file)", s)

@@ -62,6 +62,15 @@ def test_a_plug_in_that_is_not_a_factory_names_the_spec_and_the_entry(tmp_path):
     assert str(info.value).startswith(f"{tmp_path / 'spec.yaml'}: algorithms[1]: plug-in 'os:path': expected a class")
 
 
+def test_a_scenario_file_not_found_says_where_it_was_looked_for(tmp_path):
+    """'specs/my.yaml' in a spec inside specs/ is specs/specs/my.yaml: the error said only 'expected a shipped scenario
+    ... or a scenario file', not where it had looked (a walkthrough of docs/campaigns.md), as onboard_config's does."""
+    with pytest.raises(ConfigError) as info:
+        _spec(tmp_path, scenarios=["specs/my.yaml"])
+    text = str(info.value)
+    assert f"no file {tmp_path / 'specs' / 'my.yaml'}" in text and "relative to the spec's folder" in text
+
+
 def test_a_fleet_scenario_is_refused_naming_its_entry(tmp_path):
     """A campaign runs one observer per case: F1 had run, scored on its first observer alone, without a word."""
     with pytest.raises(ConfigError) as info:
