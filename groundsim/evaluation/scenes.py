@@ -7,8 +7,8 @@ every ``every``-th frame:
 * ``cloud_cover``: the fraction of the image above the horizon covered by cloud of opacity >= 0.5
   (the cover the camera *sees*, not the layer's ``cover_fraction``);
 * ``in_front_of_cloud``: the fraction of frames whose target centre is in the image, in front of a cloud
-  of opacity >= 0.5 (the layer farther than the target on that pixel); ``behind_cloud``: hidden by one (its
-  contrast through it under 3 NETD);
+  of opacity >= 0.5 (the layer farther than the target on that pixel); ``behind_cloud``: its label ``occluded``,
+  hidden by a cloud (its contrast through it under 3 NETD) or inside a nearer object's box (printed as "occluded");
   ``cloud_edge_crossings``: how often the target went from in front of a cloud to clear sky or back
   (between consecutive measured frames);
 * ``contrast_netd``: the target's peak |signal - local background| in NETD units (its label's
@@ -91,7 +91,8 @@ class SceneStats:
         return (
             f"{self.scenario}: {self.frames} frames; cloud cover seen {100 * self.cloud_cover:.0f} %; target in image"
             f" {100 * self.target_in_image:.0f} %, in front of cloud {100 * self.in_front_of_cloud:.0f} %"
-            f" ({self.cloud_edge_crossings} cloud edges crossed), behind cloud {100 * self.behind_cloud:.0f} %;"
+            f" ({self.cloud_edge_crossings} cloud edges crossed), occluded {100 * self.behind_cloud:.0f} % (behind"
+            " cloud or a nearer object);"
             f" {contrast}; {self.objects_per_frame:.1f} objects/frame{fp}"
         )
 
