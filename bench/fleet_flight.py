@@ -232,6 +232,12 @@ def plan_flight(
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    # a flight's own files from a run before in this folder: its logs are appended to (across a daemon's restart
+    # within one flight) and a failed flight left the last one's score and truth to be read as its own
+    stale = [out / f"{name}.log" for name in (*VEHICLES, "fuse", "sim")] + [out / "score.json", out / "record.json"]
+    stale += list(out.glob("truth*.csv"))
+    for path in stale:
+        path.unlink(missing_ok=True)
     ports = {v: free_udp_port() for v in VEHICLES}
     return FlightPlan(scenario, int(seed), out, free_tcp_port(), ports, duration_s, tuple(utc_error_ms))
 
@@ -695,7 +701,21 @@ def main_flight(
     no ``duration_s``, the flight is extended to RESTART_FLIGHT_S past the restart: a daemon's cold start alone
     (imports, MAVLink lock) took 10-14 s on this shared, loaded machine."""
     from bench import machine_speed_ms
+    from groundsim.world.scenario import load_scenario, resolve_scenario_path
+    from onboard.core.errors import IrtrackError
 
+    try:
+        views = load_scenario(resolve_scenario_path(scenario)).observer_views()
+    except IrtrackError as exc:
+        print(f"--flight {scenario}: {exc}", file=sys.stderr)
+        return 2
+    if len(views) < len(VEHICLES):
+        # refused before the router, two daemons and the fusion are started for a simulator that refuses it
+        print(
+            f"--flight {scenario}: expected a scenario of {len(VEHICLES)} observers (F1), got {len(views)}",
+            file=sys.stderr,
+        )
+        return 2
     if kill_at_s is not None:
         restart_at_s = kill_at_s + 5.0 if restart_at_s is None else restart_at_s
         if duration_s is None:

@@ -163,3 +163,26 @@ def test_the_navigation_floor_grows_with_an_attitude_bias():
     # one bearing off by the bias: about r * bias / sin(crossing angle) along the other ray, ~0.4 % at F1
     assert 0.002 < floor < 0.006
     assert navigation_floor({v: _truth(v) for v in VEHICLES}, range(0, STEPS, 10)) == pytest.approx(0.0, abs=1e-9)
+
+
+def test_a_scenario_of_one_observer_is_refused_before_anything_starts(tmp_path, capsys):
+    """--flight P1 started the router, both daemons and the fusion before the simulator refused a one-observer
+    scenario (exit 1, a walkthrough of docs/fleet.md); refused first now, exit 2, nothing written."""
+    from bench.fleet_flight import main_flight
+
+    assert main_flight("P1", 1, None, None, tmp_path / "out", duration_s=5.0) == 2
+    assert "--flight P1: expected a scenario of 2 observers (F1), got 1" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_flights_folder_is_cleared_of_a_run_before(tmp_path):
+    """A reused --out kept the run before's logs (appended to), score and truth, read as the new flight's when it
+    failed (a walkthrough of docs/fleet.md)."""
+    from bench.fleet_flight import plan_flight
+
+    out = tmp_path / "seed0"
+    out.mkdir()
+    for name in ("sim.log", "uav1.log", "score.json", "record.json", "truth.uav1.csv", "notes.txt"):
+        (out / name).write_text("old")
+    plan_flight("F1", 0, out)
+    assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]  # the user's own file stays
