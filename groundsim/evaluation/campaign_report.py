@@ -417,6 +417,18 @@ def write_report(out: Path, spec: CampaignSpec, rows: list[dict], run_info: dict
                 f"- {r['scenario']} {r['geometry']} {r['noise']} {r['algorithm']} seed {r['seed']}: {r.get('error')}"
             )
         L.append("")
+    # a plug-in that raised on frames finishes its run (status ok, the frames it failed on counted): its table row
+    # above reads '-' with nothing saying why, so the runs and their first error are named here
+    erred = [r for r in ok if (r.get("estimator_errors") or 0) > 0]
+    if erred:
+        L.append("## Runs with estimator errors\n")
+        L.append("Runs that finished while their estimator raised on frames (those frames have no estimate):\n")
+        for r in erred[:50]:
+            L.append(
+                f"- {r['scenario']} {r['geometry']} {r['noise']} {r['algorithm']} seed {r['seed']}: "
+                f"{int(r['estimator_errors'])} frames, the first: {r.get('error') or '-'}"
+            )
+        L.append("")
     write_replacing(out / REPORT_NAME, lambda p: p.write_text("\n".join(L), encoding="utf-8"))
     files[REPORT_NAME] = out / REPORT_NAME
     log.debug("report: %d ok rows", len(ok))

@@ -353,3 +353,6 @@ def test_a_campaign_row_counts_the_estimator_errors(tmp_path, mode, algorithm, c
     run_campaign(spec, tmp_path / "out", workers=1, progress=False)
     row = pd.read_csv(tmp_path / "out" / "runs.csv").iloc[0]
     assert row["status"] == "ok" and row["estimator_errors"] > 0 and row["error"].startswith(counted), dict(row)
+    # the report names the run and its first error (its table row read '-' with nothing saying why: a walkthrough)
+    report = (tmp_path / "out" / "report.md").read_text()
+    assert "## Runs with estimator errors" in report and f"{int(row['estimator_errors'])} frames, the first: " in report
