@@ -614,8 +614,10 @@ class Fusion:
         self._forget(now_unix_s)
         silent = {v for v, t in self._last_arrival.items() if now_unix_s - t > self.silent_after_s}
         for v in sorted(silent - self._silent):
+            live = sorted(set(self._last_arrival) - silent)
+            rest = f"fusing {', '.join(live)}" if live else "no vehicle left: nothing is fused until one is heard again"
             self.counter.count(
-                "vehicle_silent", f"{v}: no track for {now_unix_s - self._last_arrival[v]:.1f} s; fusing the others"
+                "vehicle_silent", f"{v}: no track for {now_unix_s - self._last_arrival[v]:.1f} s; {rest}"
             )
         self._silent = silent
         devs = self.clock_check.deviations_s(now_unix_s)

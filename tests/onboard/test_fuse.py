@@ -545,7 +545,8 @@ def test_consistent_clocks_are_not_named_and_two_vehicles_name_the_one_off_the_f
         assert check.deviations_s(112.0) == {} and check.inconsistent(112.0) == []  # the window moved past them
 
 
-def test_a_vehicle_that_stops_is_named_silent_and_rejoins_when_it_returns():
+def test_a_vehicle_that_stops_is_named_silent_and_rejoins_when_it_returns(caplog):
+    caplog.set_level(logging.WARNING)
     fusion = new_fusion(silent_after_s=1.0)
     rng = np.random.default_rng(13)
     out = run_pair(fusion, 1.0, rng)
@@ -556,6 +557,12 @@ def test_a_vehicle_that_stops_is_named_silent_and_rejoins_when_it_returns():
         out += fusion.flush()
     assert fusion.status(T0_UNIX_S + 3.5)["silent"] == ["uav2"]
     assert fusion.counter["vehicle_silent"] == 1
+    # it names who is still fused (it said 'fusing the others' when none was left)
+    assert any("uav2: no track for" in r.getMessage() and "fusing uav1" in r.getMessage() for r in caplog.records)
+    lone = new_fusion(silent_after_s=1.0)  # a fleet whose only vehicle stops
+    lone.receive("irtrack/uav1/track", payload_of(UAV1, 0.0, rng, 0), T0_UNIX_S + 0.005)
+    lone.watch(T0_UNIX_S + 2.0)
+    assert any("uav1: no track" in r.getMessage() and "no vehicle left" in r.getMessage() for r in caplog.records)
     late = [p for key, p in out if key == fleet_track_key() and p["time_unix_us"] >= (T0_UNIX_S + 1.5) * 1e6]
     assert late and all([c["vehicle"] for c in p["vehicles"]] == ["uav1"] and not p["observable"] for p in late)
     out = []
