@@ -59,8 +59,13 @@ def zenoh_where(config: OnboardConfig) -> str:
     """The zenoh session's endpoints and mode in words, for the no-frames warning."""
     z = config.zenoh
     parts = [f"zenoh mode as {z.config_file} sets it (peer by default)" if z.config_file else "zenoh mode peer"]
-    parts.append("connect " + (", ".join(z.connect) if z.connect else "none (--zenoh-connect)"))
-    parts.append("listen " + (", ".join(z.listen) if z.listen else "none (--zenoh-listen)"))
+    # with a config file, its own endpoints come first: 'none' would hide a file that connects over TLS
+    for name, given in (("connect", z.connect), ("listen", z.listen)):
+        if z.config_file:
+            extra = f" and {', '.join(given)}" if given else ""
+            parts.append(f"{name} as {z.config_file} sets it{extra}")
+        else:
+            parts.append(f"{name} " + (", ".join(given) if given else f"none (--zenoh-{name})"))
     scout = {True: "on", False: "off", None: "as the config file says"}[z.multicast_scouting]
     parts.append(f"multicast scouting {scout}")
     gossip = {True: "on", False: "off", None: "as the config file says"}[z.gossip_autoconnect]

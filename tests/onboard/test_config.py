@@ -593,6 +593,19 @@ def test_a_peer_that_only_connects_and_dials_no_gossiped_peer_is_warned_it_may_m
         assert zenoh_unreachable_hint(build_config({"zenoh": zenoh})) is None
 
 
+def test_where_zenoh_listens_names_a_config_files_endpoints_not_none(tmp_path):
+    """The no_frames warning said 'connect none (--zenoh-connect); listen none' for a daemon whose zenoh file connects
+    over TLS (a walkthrough of deploy/README's ACL set-up): with a file, its endpoints are the file's, plus any given."""
+    from onboard.app.components import zenoh_where
+
+    f = tmp_path / "client.json5"
+    f.write_text('{ mode: "client", connect: { endpoints: ["tcp/127.0.0.1:7447"] } }\n')
+    where = zenoh_where(build_config({"zenoh": {"config_file": str(f), "listen": ["tcp/127.0.0.1:0"]}}))
+    assert f"connect as {f} sets it" in where and f"listen as {f} sets it and tcp/127.0.0.1:0" in where
+    assert "none" not in where
+    assert "connect none (--zenoh-connect)" in zenoh_where(build_config({}))
+
+
 def test_no_writable_numba_cache_is_one_line_and_exit_2(monkeypatch, capsys):
     """numba refuses to cache a kernel as its module is imported when no folder is writable (the image's read-only
     tree with NUMBA_CACHE_DIR unset): a 30-line traceback even for --check; now one line naming NUMBA_CACHE_DIR."""
