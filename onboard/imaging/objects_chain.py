@@ -45,10 +45,10 @@ class ObjectChain:
         self.rejected_frames = 0
         self._R: np.ndarray | None = None
         self._last_primary: int | None = None
-        self._consumed: tuple | None = None  # (frame, its update) a refused selection measured
-        # (frame, its update) the last selection measured: a second request decided on the same frame (a double
-        # click within a frame period, a click then a box) selects on that measurement instead of measuring the frame
-        # again, which the tracker would take for a frozen frame (every track predicted one step more, coasting)
+        # (frame, its update) a selection measured: a second request decided on the same frame (a double click within
+        # a frame period, a click then a box) selects on it, and the frame's update after selections that selected
+        # nothing returns it; measuring the frame again would read as a frozen frame (every track predicted one step
+        # more, coasting)
         self._measured: tuple | None = None
 
     @property
@@ -58,10 +58,9 @@ class ObjectChain:
         return self.mode == "auto" and self.objects.mode == "operator"
 
     def update(self, image: np.ndarray, R_ned_from_cam: np.ndarray | None = None, time_boot_us: int | None = None):
-        self._measured = None
-        consumed, self._consumed = self._consumed, None
-        if consumed is not None and consumed[0] is image:
-            return consumed[1]  # measured by a refused selection just now (select_point)
+        measured, self._measured = self._measured, None
+        if measured is not None and measured[0] is image:
+            return measured[1]  # measured by a selection on this frame that selected nothing (select_point)
         try:
             image = check_frame(image)
         except InputError:
@@ -128,8 +127,7 @@ class ObjectChain:
         sel = self.objects.select_point(u_px, v_px, radius_px, rect_px)
         if sel is None or self.last_objects is None:
             # the caller then tracks the frame as usual (a refused selection leaves the single chain's tracker
-            # untouched): this frame is measured already, and measuring it again would read as a frozen frame
-            self._consumed = (image, upd)
+            # untouched): update() gives this frame's measurement back
             return None
         self.objects.mode = self.mode  # a selection ends a stop's hold
         # this frame measured the object already (before it was selected): reported from its track,
