@@ -392,11 +392,10 @@ class FramePipeline:
         self._camera_sigma_m = max(float(ec.camera_position_white_sigma_m), CAMERA_SIGMA_FLOOR_M)
         self._coast_max_s = float(getattr(getattr(config, "pose", None), "dead_reckoning_max_s", 10.0))
         self._pixel_sigma_px = float(ec.pixel_sigma_px)
-        self._attitude_sigma_rad = math.radians(math.hypot(ec.attitude_white_sigma_deg, ec.attitude_bias_sigma_deg))
         #: the camera attitude's 1-sigma per axis the lines of sight carry (the track's; the objects message's too)
-        self.attitude_sigma_rad = self._attitude_sigma_rad
+        self.attitude_sigma_rad = math.radians(math.hypot(ec.attitude_white_sigma_deg, ec.attitude_bias_sigma_deg))
         f_px = math.sqrt(self.intrinsics.fx_px * self.intrinsics.fy_px)
-        self._bearing_sigma_rad = math.hypot(self._pixel_sigma_px / f_px, self._attitude_sigma_rad)
+        self._bearing_sigma_rad = math.hypot(self._pixel_sigma_px / f_px, self.attitude_sigma_rad)
         self._residuals: collections.deque = collections.deque()  # (time_boot_us, z_u^2 + z_v^2)
         self._selections: collections.deque = collections.deque()  # (TrackRequest, on_done): any thread appends
         to = getattr(config, "time_offset", None)  # a test's config may lack the section: then none
@@ -895,7 +894,7 @@ class FramePipeline:
                 pose.q_ned_from_cam,
                 pose.p_cam_ned_m,
                 self._pixel_sigma_px,
-                self._attitude_sigma_rad,
+                self.attitude_sigma_rad,
             )
         except (InputError, ValueError, FloatingPointError) as exc:
             self.counter.count("los_invalid", str(exc))
@@ -930,7 +929,7 @@ class FramePipeline:
         C = np.asarray(est.cov_p_ned_m2, dtype=float)
         perp_var_m2 = max(float(np.trace(C) - los @ C @ los), 0.0) / 2.0
         f2 = K.fx_px * K.fy_px
-        s2 = self._pixel_sigma_px**2 + f2 * (self._attitude_sigma_rad**2 + perp_var_m2 / rng**2)
+        s2 = self._pixel_sigma_px**2 + f2 * (self.attitude_sigma_rad**2 + perp_var_m2 / rng**2)
         du, dv = upd.u_px - uv[0], upd.v_px - uv[1]
         return float((du * du + dv * dv) / s2)
 
