@@ -53,6 +53,8 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 VEHICLES = ("uav1", "uav2")
+#: the processes of a flight, each with its log in the flight's folder
+LOG_NAMES = (*VEHICLES, "fuse", "sim")
 FLEET_CONFIGS = {v: REPO / "config" / "fleet" / f"{v}.yaml" for v in VEHICLES}
 READY_TIMEOUT_S = 60.0  # imports and zenoh on a loaded 2-core machine
 SIM_ALLOWANCE_S = 30.0  # wall seconds beyond the flight before the simulator counts as stuck
@@ -234,7 +236,7 @@ def plan_flight(
     out.mkdir(parents=True, exist_ok=True)
     # a flight's own files from a run before in this folder: its logs are appended to (across a daemon's restart
     # within one flight) and a failed flight left the last one's score and truth to be read as its own
-    stale = [out / f"{name}.log" for name in (*VEHICLES, "fuse", "sim")] + [out / "score.json", out / "record.json"]
+    stale = [out / f"{name}.log" for name in LOG_NAMES] + [out / "score.json", out / "record.json"]
     stale += list(out.glob("truth*.csv"))
     for path in stale:
         path.unlink(missing_ok=True)
@@ -286,7 +288,7 @@ def run_flight(
 
     rec = FlightRecord(truth={}) if record is None else record
     col = _Collector(rec)
-    logs = {name: plan.out_dir / f"{name}.log" for name in (*VEHICLES, "fuse", "sim")}
+    logs = {name: plan.out_dir / f"{name}.log" for name in LOG_NAMES}
     procs: dict[str, subprocess.Popen | None] = {}
     router = open_router(plan.endpoint)
     session = None
