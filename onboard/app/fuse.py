@@ -920,13 +920,10 @@ def _main(argv: Sequence[str] | None) -> int:
         where = list(settings.connect + settings.listen) + (
             [f"--zenoh-config {settings.config_file}"] if settings.config_file is not None else []
         )
-        log.info(
-            "fusing %s from %s on %s, dialing gossiped peers %s",
-            which,
-            TRACKS_KEY_EXPR,
-            ", ".join(where) or "zenoh's defaults",
-            "on" if settings.gossip_autoconnect else "off",
-        )
+        # where this node listens, said at start and again if it hears nothing
+        endpoints = ", ".join(where) or "zenoh's defaults"
+        where_text = f"{endpoints}, dialing gossiped peers {'on' if settings.gossip_autoconnect else 'off'}"
+        log.info("fusing %s from %s on %s", which, TRACKS_KEY_EXPR, where_text)
         deadline = None if args.seconds == 0 else time.monotonic() + args.seconds
         next_status = time.monotonic() + args.status_interval_s
         next_watch = time.monotonic() + WATCH_INTERVAL_S
@@ -940,14 +937,12 @@ def _main(argv: Sequence[str] | None) -> int:
             elif quiet_until is not None and time.monotonic() >= quiet_until:
                 quiet_until = None
                 log.warning(
-                    "nothing received on %s for %.0f s (%s; dialing gossiped peers %s): check that the daemons run "
-                    "and publish, and that this node reaches them (a peer that only dials a router hears the "
-                    "daemons behind it only with --zenoh-gossip-autoconnect, or run this node as the router: "
-                    "docs/fleet.md)",
+                    "nothing received on %s for %.0f s (%s): check that the daemons run and publish, and that this "
+                    "node reaches them (a peer that only dials a router hears the daemons behind it only with "
+                    "--zenoh-gossip-autoconnect, or run this node as the router: docs/fleet.md)",
                     TRACKS_KEY_EXPR,
                     NOTHING_HEARD_S,
-                    ", ".join(where) or "zenoh's defaults",
-                    "on" if settings.gossip_autoconnect else "off",
+                    where_text,
                 )
             drain(inbox, fusion, item)
             for key, payload in fusion.flush(force=idle):  # idle: whatever is pending, due or not
