@@ -323,6 +323,7 @@ class GcsConfig:
 class FollowConfig:
     """``follow``: FOLLOW_TARGET (#144) to the autopilot from observable 3-D positions (see :mod:`onboard.io.follow`)."""
 
+    __off_unless_enabled__ = True  # settings without enabled: refused (onboard.core.schema.build)
     enabled: Bool = False
     rate_hz: Annotated[float, Number(0.0, 50.0, lo_open=True)] = 5.0
 

@@ -35,7 +35,8 @@ and ``1e-3`` are numbers (YAML 1.1, PyYAML's default, reads an exponent without 
 
 :func:`build` turns a parsed mapping into a config dataclass, descending into the fields whose type is
 another config dataclass (a section), a tuple of them, or a union of them told apart by their ``model``
-key; errors carry the full dotted path.  Pure: no I/O but :func:`read_yaml`'s, nothing at import time.
+key; errors carry the full dotted path.  A class with ``__off_unless_enabled__ = True`` (a section that does
+nothing unless its ``enabled`` is true) refuses a mapping that sets other keys without ``enabled``.  Pure: no I/O but :func:`read_yaml`'s, nothing at import time.
 """
 
 from __future__ import annotations
@@ -393,11 +394,23 @@ def build(
                     keys=tuple(names),
                     owner=cls.__name__,
                 )
-        return cls(**kwargs, **(given or {}))
+        obj = cls(**kwargs, **(given or {}))
     except SchemaError as exc:
         if exc.owner != cls.__name__:  # raised by a library object built inside: not ours to re-path
             raise
         return _raise(exc.as_(type(exc), prefix=path))
+    # after the values' own checks, which name the more specific mistake
+    if getattr(cls, "__off_unless_enabled__", False) and "enabled" not in raw and raw:
+        # a section drawn or sent only when enabled: its settings written without ``enabled`` would be read and
+        # silently do nothing, which is never what the writer meant
+        raise SchemaError.make(
+            f"<{cls.__name__}>",
+            _join(path, "enabled"),
+            "true (or false, to keep the section off with its settings)",
+            MISSING_TEXT,
+            f"the section sets {', '.join(map(str, raw))} but is off unless enabled",
+        )
+    return obj
 
 
 def _raise(exc: Exception) -> Any:

@@ -111,6 +111,14 @@ def test_config_all_off_by_default_and_errors_name_the_field():
         scene_config_from_dict({"sensor": {"counts_at_t_max": 20000}})
     with pytest.raises(SchemaError, match=r"sensor.ffc.mode"):
         scene_config_from_dict({"sensor": {"ffc": {"mode": "freeze"}}})
+    # settings written without ``enabled`` drew nothing, silently: refused naming the key to add
+    with pytest.raises(SchemaError, match=r"^C1.yaml: clouds.enabled: expected true .*the section sets cover_fraction"):
+        scene_config_from_dict({"clouds": {"cover_fraction": 0.4}}, "C1.yaml")
+    with pytest.raises(SchemaError, match=r"^C5.yaml: sensor.fpn.enabled: expected true .*sets hot_pixels"):
+        scene_config_from_dict({"sensor": {"enabled": True, "fpn": {"hot_pixels": 3}}}, "C5.yaml")
+    assert not scene_config_from_dict({"clouds": {"enabled": False, "cover_fraction": 0.4}}).clouds.enabled
+    assert scene_config_from_dict({"clouds": {"enabled": True, "cover_fraction": 0.4}}).clouds.cover_fraction == 0.4
+    assert scene_config_from_dict({"clouds": {}}) == cfg
 
 
 def test_bad_constructor_inputs():

@@ -636,6 +636,12 @@ def test_follow_or_guidance_on_without_the_estimator_is_refused(section):
     assert getattr(build_config({section: {"enabled": True}}), section).enabled
 
 
+def test_follow_settings_without_enabled_are_refused_not_silently_off():
+    with pytest.raises(ConfigError, match=r"^\(defaults\): follow.enabled: expected true .*sets rate_hz"):
+        build_config({"follow": {"rate_hz": 2.0}})
+    assert not build_config({"follow": {"enabled": False, "rate_hz": 2.0}}).follow.enabled
+
+
 def test_check_refuses_what_the_start_would_a_recording_folder_it_cannot_write_or_a_live_view_host_unknown(
     tmp_path, capsys
 ):

@@ -93,6 +93,7 @@ class CloudsConfig:
     ``feature_size_m`` is the largest cloud scale, ``texel_m`` the texture's resolution on the plane and
     ``texture_px`` its side (the pattern repeats every ``texel_m * texture_px`` metres)."""
 
+    __off_unless_enabled__ = True  # settings without enabled: refused (onboard.core.schema.build)
     enabled: Bool = False
     base_altitude_m: Length = 1500.0
     thickness_m: Length = 300.0
@@ -134,6 +135,7 @@ class TerrainConfig:
     background difference reads as texture) and smoother at the finest scale than the optics leave it
     (docs/scenes.md, "Terrain sampling")."""
 
+    __off_unless_enabled__ = True  # settings without enabled: refused (onboard.core.schema.build)
     enabled: Bool = False
     full_resolution: Bool = True
     texel_m: Length = 0.5
@@ -240,6 +242,7 @@ class CrossoverConfig:
     while, as around dawn and dusk.  Scaling the difference is the same as moving every part's radiance
     towards the background's along the straight line between them."""
 
+    __off_unless_enabled__ = True  # settings without enabled: refused (onboard.core.schema.build)
     enabled: Bool = False
     start_s: NonNegative = 2.0
     ramp_s: Positive = 2.0
@@ -271,6 +274,7 @@ class AgcConfig:
     min-max map by ``linear_fraction``, the slope capped at ``max_gain`` 8-bit levels per count; the
     map follows the scene with time constant ``time_constant_s`` (its frame-to-frame gain changes)."""
 
+    __off_unless_enabled__ = True  # settings without enabled: refused (onboard.core.schema.build)
     enabled: Bool = False
     plateau_fraction: Annotated[float, Number(0.0, 1.0, lo_open=True)] = 0.01
     linear_fraction: Fraction = 0.2
@@ -285,6 +289,7 @@ class FpnConfig:
     (the core warms): the pattern grows by ``drift_counts_per_s`` (1 sigma) per second since the last
     flat-field correction, which resets it to ``residual_fraction`` of the static pattern."""
 
+    __off_unless_enabled__ = True  # settings without enabled: refused (onboard.core.schema.build)
     enabled: Bool = False
     column_sigma_counts: NonNegative = 6.0
     pixel_offset_sigma_counts: NonNegative = 4.0
@@ -301,6 +306,7 @@ class FfcConfig:
     ``frames`` frames, which are ``frozen`` (the last image repeated) or ``dropped`` (no image); after
     it the drifted offsets step back (see :class:`FpnConfig`)."""
 
+    __off_unless_enabled__ = True  # settings without enabled: refused (onboard.core.schema.build)
     enabled: Bool = False
     period_s: Positive = 20.0
     first_s: NonNegative = 20.0
@@ -313,6 +319,7 @@ class VignettingConfig:
     """Signal falling off towards the corners: gain ``1 - (1 - corner_gain) r^2`` with r the distance
     from the principal point over the distance to the farthest corner."""
 
+    __off_unless_enabled__ = True  # settings without enabled: refused (onboard.core.schema.build)
     enabled: Bool = False
     corner_gain: Annotated[float, Number(0.0, 1.0, lo_open=True)] = 0.85
 
@@ -323,6 +330,7 @@ class SensorConfig:
     radiance of the renderer's ``t_min_k``, ``counts_at_t_max`` at ``t_max_k``, linear in radiance), with
     NETD noise, then fixed-pattern noise, vignetting, flat-field events, and the AGC 8-bit output."""
 
+    __off_unless_enabled__ = True  # settings without enabled: refused (onboard.core.schema.build)
     enabled: Bool = False
     raw_bits: Annotated[int, Integer(8, 16)] = 14
     counts_at_t_min: Annotated[int, Integer(0, 65535)] = 2000
