@@ -48,7 +48,7 @@ frame (H, W) uint8/uint16 in, the target's centre, box and track state out.  Onl
 ``measurement_valid`` (a :class:`onboard.imaging.Detection` and its centre) reaches the estimator: the centre of a
 coasting box has no bearing worth reconstructing, and a measured centre must lie on the frame (0 <= u <= W,
 0 <= v <= H; off it, the frame is refused as ``tracker_output_invalid``, as is any answer the pipeline cannot read:
-:func:`onboard.pipeline.frame_pipeline.tracker_problem`).  A tracker whose class says ``uses_pose = True`` is called
+:func:`onboard.pipeline.answer_checks.tracker_problem`).  A tracker whose class says ``uses_pose = True`` is called
 ``update(pixels, rotation, time_boot_us)`` instead, ``rotation()`` returning the frame's ``R_ned_from_cam`` (3, 3)
 (or None without a pose): the objects chain registers frames with it.  ``reset()``, when it has one, is called when
 the pipeline restarts (a clock reset).  ``groundsim eval --tracker NAME`` runs it in the daemon's pipeline in
