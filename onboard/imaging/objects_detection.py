@@ -21,16 +21,21 @@ import cv2
 import numpy as np
 
 from onboard.imaging import kernels
+from onboard.imaging.background_difference import (
+    background_difference,
+    difference_peak,
+    rotation_shift_px,
+    surround_residuals,
+    two_level_difference_cap,
+)
 from onboard.imaging.clutter import (
     TRANSIENT_A,
     ClutterParams,
     DefectMap,
     PointCandidate,
     Scratch,
-    background_difference,
     cfar_threshold,
     column_offsets,
-    difference_peak,
     grey_level,
     median_window_noise,
     noise_cells,
@@ -38,10 +43,7 @@ from onboard.imaging.clutter import (
     point_candidates,
     point_contrast,
     quietest_block_noise,
-    rotation_shift_px,
-    surround_residuals,
     two_level_cap,
-    two_level_difference_cap,
     window_noise,
 )
 from onboard.imaging.objects_model import ObjectParams, StageTimes, TrackRecord, los_from_pixel, pixel_from_los
@@ -481,7 +483,7 @@ class ObjectDetector:
 
     def surroundings_match(self, t: TrackRecord) -> float:
         """How much better the track's own displacement fits its surroundings than any ~3 px away: ``alt /
-        own`` of :func:`onboard.imaging.clutter.surround_residuals` over the track's recent frames (nan:
+        own`` of :func:`onboard.imaging.background_difference.surround_residuals` over the track's recent frames (nan:
         too few frames or pixels).  Carried by them well over 1; crossing them, or on a featureless sky,
         about 1 or under."""
         if len(t.history) < 2:
@@ -505,7 +507,7 @@ class ObjectDetector:
     ) -> PointCandidate | None:
         """Track-aided detection against the background (where its motion is known): this frame minus the
         one ``DIFFERENCE_LAG`` frames earlier registered on the prediction's surroundings, searched about
-        the camera's rotation plus that motion (:func:`onboard.imaging.clutter.background_difference`); None
+        the camera's rotation plus that motion (:func:`onboard.imaging.background_difference.background_difference`); None
         without a detection there (or without the frames or the motion it needs).  The caller leaves out
         a prediction with another confirmed track within ``DIFFERENCE_HALF_PX``."""
         k = self.frame_index

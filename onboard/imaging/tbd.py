@@ -59,7 +59,8 @@ import cv2
 import numpy as np
 
 from onboard.core.errors import InputError
-from onboard.imaging.clutter import PointCandidate, noise_window_cells, rotation_shift_px
+from onboard.imaging.background_difference import rotation_shift_px
+from onboard.imaging.clutter import PointCandidate, noise_window_cells
 from onboard.imaging.detect import Detection
 
 __all__ = ["TbdParams", "TrackBeforeDetect", "frame_steps"]

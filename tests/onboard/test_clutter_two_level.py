@@ -14,16 +14,14 @@ from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from onboard.core.frames import PinholeIntrinsics
+from onboard.imaging.background_difference import background_difference, difference_peak, two_level_difference_cap
 from onboard.imaging.clutter import (
     ClutterParams,
-    background_difference,
     cfar_threshold,
-    difference_peak,
     local_noise_coarse,
     point_candidates,
     point_contrast,
     two_level_cap,
-    two_level_difference_cap,
 )
 from onboard.imaging.objects_detection import (
     DIFFERENCE_GATE_PX,

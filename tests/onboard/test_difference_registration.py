@@ -1,4 +1,4 @@
-"""The background difference's registration and sampling (onboard.imaging.clutter.background_difference):
+"""The background difference's registration and sampling (onboard.imaging.background_difference.background_difference):
 a whole-pixel current square and a Gauss-Newton refinement of the displacement, and the aided run's motion
 test that may leave out its worst positions (ObjectTracker._moves_unlike_background)."""
 
@@ -11,7 +11,7 @@ from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from onboard.core.frames import PinholeIntrinsics
-from onboard.imaging.clutter import background_difference, difference_centre, difference_peak
+from onboard.imaging.background_difference import background_difference, difference_centre, difference_peak
 from onboard.imaging.objects import ObjectTracker
 from onboard.imaging.objects_model import TrackRecord
 

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from onboard.core.frames import PinholeIntrinsics
-from onboard.imaging.clutter import GREY16_PER_GREY8, grey_level, two_level_difference_cap
+from onboard.imaging.background_difference import two_level_difference_cap
+from onboard.imaging.clutter import GREY16_PER_GREY8, grey_level
 from onboard.imaging.objects import ObjectTracker
 
 W_PX, H_PX = 256, 192

@@ -12,7 +12,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from onboard.core.frames import PinholeIntrinsics
-from onboard.imaging.clutter import ClutterParams, surround_residuals
+from onboard.imaging.background_difference import surround_residuals
+from onboard.imaging.clutter import ClutterParams
 from onboard.imaging.objects import ObjectParams, ObjectTracker
 from onboard.imaging.objects_detection import SURROUND_MATCH_RATIO, ObjectDetector
 
@@ -161,7 +162,7 @@ def test_surround_residuals_give_no_evidence_on_a_featureless_sky_or_outside_the
 def test_background_difference_registers_the_background_and_keeps_the_mover(du, dv, eu, ev):
     """Texture moved by (du, dv) and searched from a guess (eu, ev) px off: the displacement is found
     within REGISTRATION_TOL_PX, and a 15 grey point drawn on the current frame only is what remains."""
-    from onboard.imaging.clutter import background_difference
+    from onboard.imaging.background_difference import background_difference
 
     previous, current = _shifted_texture(du, dv)
     yy, xx = np.mgrid[0:128, 0:128].astype(np.float64)
