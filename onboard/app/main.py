@@ -266,11 +266,12 @@ def _check_problem(config, checked: list[str]) -> str | None:
 
 
 def _serve(args: argparse.Namespace, stop: _StopSignals) -> int:
-    from onboard.app.config import OnboardConfigError, config_to_dict, load_config
+    from onboard.app.config import OnboardConfigError, config_to_dict, env_overrides, load_config
     from onboard.core.errors import IrtrackError
 
+    overrides = _overrides(args)
     try:
-        config = load_config(args.config, _overrides(args))
+        config = load_config(args.config, overrides)
     except OnboardConfigError as exc:
         print(str(exc), file=sys.stderr)
         return EXIT_CONFIG
@@ -287,8 +288,12 @@ def _serve(args: argparse.Namespace, stop: _StopSignals) -> int:
         if problem is not None:
             print(f"{args.config or '(defaults)'}: {problem}", file=sys.stderr)
             return EXIT_CONFIG
-        # what was checked, and that no link was tried: an ok says nothing of a peer, an autopilot or a camera
-        print(f"{args.config or '(defaults)'}: ok ({', '.join(checked)}; no link opened)")
+        # what was checked, and that no link was tried: an ok says nothing of a peer, an autopilot or a camera;
+        # and what was checked beside the file, since the same file checks otherwise without the variables set
+        # here or the options given (the container's environment differs from the shell's)
+        beside = {**env_overrides(), **overrides}
+        with_text = " with " + ", ".join(f"{p} ({src})" for p, (_v, src) in beside.items()) if beside else ""
+        print(f"{args.config or '(defaults)'}{with_text}: ok ({', '.join(checked)}; no link opened)")
         return EXIT_OK
 
     setup_logging(config.logging.level, config.logging.format)

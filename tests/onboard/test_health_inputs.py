@@ -11,6 +11,7 @@ import pytest
 
 from onboard.app import health
 from onboard.core.errors import ConfigError
+from tests.integration_helpers import ONBOARD_CONFIG
 
 
 @pytest.fixture
@@ -101,14 +102,40 @@ def test_the_check_says_what_it_checked(tmp_path, capsys):
     alive = tmp_path / "alive"
     assert main(["--set", f"output.health_file={alive}", "--check"]) == 0
     out = capsys.readouterr().out
-    assert out == "(defaults): ok (every field, zenoh config, output.health_file writable; no link opened)\n", out
+    assert out == (
+        "(defaults) with output.health_file (--set): ok (every field, zenoh config, output.health_file writable;"
+        " no link opened)\n"
+    ), out
     record = tmp_path / "r.mcap"
     assert main(["--set", "output.health_file=null", "--record", str(record), "--live-view", "8765", "--check"]) == 0
     out = capsys.readouterr().out
-    assert (
-        out
-        == "(defaults): ok (every field, zenoh config, record.path writable, live_view.host resolves; no link opened)\n"
-    )
+    assert out == (
+        "(defaults) with output.health_file (--set), record.path (--record), live_view.port (--live-view): ok (every"
+        " field, zenoh config, record.path writable, live_view.host resolves; no link opened)\n"
+    ), out
+
+
+def test_the_check_names_the_variables_and_options_it_checked_beside_the_file(monkeypatch, capsys):
+    """The ok line named only the file: the same file checked in another environment (the container's) is another
+    configuration."""
+    from onboard.app.main import main
+
+    monkeypatch.setenv("IRTRACK_ESTIMATOR_WINDOW_S", "10")
+    argv = [
+        "--config",
+        str(ONBOARD_CONFIG),
+        "--set",
+        "follow.enabled=true",
+        "--set",
+        "output.health_file=null",
+        "--check",
+    ]
+    assert main(argv) == 0
+    out = capsys.readouterr().out
+    assert out == (
+        f"{ONBOARD_CONFIG} with estimator.window_s (env IRTRACK_ESTIMATOR_WINDOW_S), follow.enabled (--set),"
+        " output.health_file (--set): ok (every field, zenoh config; no link opened)\n"
+    ), out
 
 
 @pytest.mark.parametrize("case", ["under_a_file", "symlink_loop"])
