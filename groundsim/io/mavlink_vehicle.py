@@ -20,7 +20,9 @@ HEARTBEAT (#0)                               1 Hz      MAV_TYPE_QUADROTOR, MAV_A
                                                        ArduCopter's (the same | CUSTOM_MODE_ENABLED)
 SYSTEM_TIME (#2)                             1 Hz      time_unix_usec = unix time at boot + boot time
                                                        (``unix_time_at_boot_us``: ``groundsim run`` passes
-                                                       the simulated UTC's; None: the wall clock's)
+                                                       the simulated UTC's; None: the wall clock's), of an
+                                                       instant up to 1 ms after poll time, time_boot_ms its
+                                                       boot time truncated as an autopilot's
 ATTITUDE_QUATERNION (#31)                    50 Hz     q1..q4 = w, x, y, z of ``q_ned_from_body``
                                                        (body FRD -> NED, Hamilton); rollspeed,
                                                        pitchspeed, yawspeed = body rates p, q, r rad/s;
@@ -130,6 +132,7 @@ from __future__ import annotations
 import errno
 import logging
 import math
+import random
 import socket
 import time
 from collections import Counter
@@ -364,6 +367,7 @@ class MavlinkVehicle:
         self._state: VehicleState | None = None
         self._now_us: int | None = None
         self._unix_at_boot_us = unix_time_at_boot_us
+        self._system_time_phase = random.Random(sysid)  # the same instants every run of a vehicle
         self._last_log: dict[str, float] = {}
         self.counters: Counter[str] = Counter()
         self._conn = open_mavlink2(connection, sysid, compid)
@@ -501,7 +505,11 @@ class MavlinkVehicle:
             if msg_id == MSG_HEARTBEAT:
                 mav.send(heartbeat(self._custom_mode()).to_message())
             elif msg_id == MSG_SYSTEM_TIME:
-                mav.send(SystemTime(self._unix_at_boot_us + now, now).to_message())
+                # an autopilot samples both clocks at an instant of its own microsecond clock and truncates the boot
+                # time to ms; poll times lie on the simulation's step grid, whole ms, where the truncation would lose
+                # nothing and a receiver's half-ms correction (onboard.core.utc_clock) would read 0.5 ms late
+                at = now + self._system_time_phase.randrange(1000)
+                mav.send(SystemTime(self._unix_at_boot_us + at, at).to_message())
             elif msg_id == MSG_ATTITUDE_QUATERNION:
                 mav.send(
                     AttitudeQuaternion(state.time_boot_us, state.q_ned_from_body, state.body_rates_radps).to_message()

@@ -219,7 +219,25 @@ def test_attitude_and_position_fields_in_spec_units(link):
     assert pos.alt == 488123 and pos.relative_alt == 30250  # mm
     assert (pos.vx, pos.vy, pos.vz) == (1234, -567, -89)  # cm/s NED
     assert pos.hdg == round(math.degrees(HEADING_RAD) * 100)  # cdeg
-    assert st.time_boot_ms == 12_346 and st.time_unix_usec == 1_700_000_000_000_000 + t_us + 500
+    # an instant up to 1 ms after poll time, its boot time truncated to ms as an autopilot's
+    at_us = st.time_unix_usec - 1_700_000_000_000_000
+    assert t_us + 500 <= at_us < t_us + 1500 and st.time_boot_ms == at_us // 1000
+
+
+@pytest.mark.integration
+def test_system_time_boot_ms_is_truncated_half_a_ms_early_on_average_polled_on_whole_ms(link):
+    """Polled on the simulation's whole-ms step grid, SYSTEM_TIME's boot time was exact, so a receiver's half-ms
+    correction for an autopilot's truncation (onboard.core.utc_clock) read the simulated UTC 0.5 ms late."""
+    rx, vehicle = link
+    sts = []
+    for k in range(1, 121):
+        vehicle.poll(k * 1_000_000)
+        if k % 10 == 0:  # a few at a time: a burst of 120 seconds' messages overflows the socket's buffer
+            sts += _of(_drain(rx, quiet_s=0.02), "SYSTEM_TIME")
+    assert len(sts) == 120
+    lost_us = [st.time_unix_usec - 1_700_000_000_000_000 - st.time_boot_ms * 1000 for st in sts]
+    assert all(0 <= x < 1000 for x in lost_us)
+    assert abs(np.mean(lost_us) - 500.0) < 3 * 289 / np.sqrt(len(lost_us))  # uniform on [0, 1 ms): sigma 289 us
 
 
 @pytest.mark.integration
