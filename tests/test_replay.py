@@ -20,7 +20,6 @@ from onboard.app.replay import (
     EXIT_CONFIG,
     EXIT_DIFFERENT,
     EXIT_OK,
-    UNREPLAYED_KEYS,
     compare_objects,
     compare_tracks,
     compare_within_sigma,
@@ -36,9 +35,8 @@ REPLAY_START_TIMEOUT_S = 60.0  # imports and reading the recording on a busy 2-c
 
 
 def test_compare_tracks_reports_fields_and_distances():
-    a = [  # the recording's UTC stamps come from the autopilot link, which a replay does not have: not compared
-        {"seq": 1, "time_boot_us": 10, "ned_m": [0.0, 0.0, 0.0], "u_px": 1.0, "v_px": 2.0, "state": "tracking"}
-        | {"time_unix_us": 1_800_000_000_000_010, "time_unix_sigma_us": 300},
+    a = [
+        {"seq": 1, "time_boot_us": 10, "ned_m": [0.0, 0.0, 0.0], "u_px": 1.0, "v_px": 2.0, "state": "tracking"},
         {"seq": 2, "time_boot_us": 20, "ned_m": None, "u_px": None, "v_px": None, "state": "lost"},
         {"seq": 3, "time_boot_us": 30, "state": "lost"},
     ]
@@ -53,12 +51,33 @@ def test_compare_tracks_reports_fields_and_distances():
     assert diffs[0].d_uv_px == 0.0
 
 
+def test_a_replayed_track_takes_the_utc_stamp_of_the_recorded_frame():
+    """Replayed tracks had null UTC stamps on every frame (the daemon maps the boot clock through the autopilot's
+    SYSTEM_TIME, which the pipeline does not see): a replay fed to the fleet fusion fell back to arrival times."""
+    from onboard.app.replay import _recorded_utc, _with_recorded_utc
+    from tests.fakes import tracking_track
+
+    recorded = [
+        {"seq": 7, "time_boot_us": 1_000, "time_unix_us": None, "time_unix_sigma_us": None},
+        {"seq": 8, "time_boot_us": 34_333, "time_unix_us": 1_800_000_000_034_333, "time_unix_sigma_us": 310},
+        {"seq": 8, "time_boot_us": 34_333, "time_unix_us": 1_800_000_000_034_334, "time_unix_sigma_us": 311},
+    ]
+    utc_of = _recorded_utc(recorded)
+    assert _with_recorded_utc(tracking_track(seq=7, time_boot_us=1_000), utc_of).time_unix_us is None
+    assert _with_recorded_utc(tracking_track(seq=9, time_boot_us=34_333), utc_of).time_unix_us is None
+    first = _with_recorded_utc(tracking_track(seq=8, time_boot_us=34_333), utc_of)
+    second = _with_recorded_utc(tracking_track(seq=8, time_boot_us=34_333), utc_of)  # a duplicated frame: in turn
+    assert (first.time_unix_us, first.time_unix_sigma_us) == (1_800_000_000_034_333, 310)
+    assert (second.time_unix_us, second.time_unix_sigma_us) == (1_800_000_000_034_334, 311)
+    assert _with_recorded_utc(tracking_track(seq=8, time_boot_us=34_333), utc_of).time_unix_us is None
+
+
 def test_compare_objects_matches_frames_in_order_and_counts_the_identical_ones():
     def frame(t_us: int, index: int, n: int, **extra) -> dict:
         return {"time_boot_us": t_us, "frame_index": index, "objects": [{"id": k} for k in range(n)], **extra}
 
     recorded = [
-        frame(10, 0, 1, time_unix_us=5),  # a replay has no UTC stamp: not compared
+        frame(10, 0, 1),
         frame(20, 1, 2),
         frame(20, 1, 3),  # the same key twice (a duplicated frame): matched in turn
         frame(30, 2, 1),  # not replayed
@@ -187,10 +206,6 @@ def _replay(*args, returncode: int = EXIT_OK) -> subprocess.CompletedProcess:
     return p
 
 
-def _made(track: dict) -> dict:
-    return {k: v for k, v in track.items() if k not in UNREPLAYED_KEYS}
-
-
 @pytest.mark.integration
 @pytest.mark.slow
 def test_replay_reproduces_the_recorded_tracks_bit_for_bit(recorded, tmp_path):
@@ -200,11 +215,10 @@ def test_replay_reproduces_the_recorded_tracks_bit_for_bit(recorded, tmp_path):
     p = _replay(r.daemon_mcap, "--compare", "--out", out)
     print(p.stdout)
     replayed = [json.loads(line) for line in out.read_text().splitlines()]
-    # what the daemon published over zenoh, every field, floats bit for bit; but the UTC stamps, which the daemon
-    # makes from the autopilot's SYSTEM_TIME and a replay of the pipeline does not have (they are null there)
+    # what the daemon published over zenoh, every field, floats bit for bit; the UTC stamps too, the recorded
+    # frame's (they were null in every replayed track: the daemon makes them from the autopilot's SYSTEM_TIME)
     assert all(t["time_unix_us"] is not None for t in r.tracks[-10:])
-    assert all(t["time_unix_us"] is None for t in replayed)
-    assert [_made(t) for t in replayed] == [_made(t) for t in r.tracks]
+    assert replayed == r.tracks
     assert sum(t["ned_m"] is not None for t in replayed) > 50  # with 3-D estimates, not only 2-D tracks
     n = len(r.tracks)
     assert f"compare: {n}/{n} frames identical, 0 differ, 0 unmatched" in p.stdout
@@ -269,7 +283,7 @@ def test_replay_with_the_tracker_in_a_second_process_gives_the_same_tracks(recor
     p = _replay(recorded.daemon_mcap, *single, "--jobs", "2", "--out", two)
     assert "replays in one process" not in p.stderr
     replayed = [json.loads(line) for line in two.read_text().splitlines()]
-    assert [_made(t) for t in replayed] == [_made(t) for t in (json.loads(ln) for ln in one.read_text().splitlines())]
+    assert replayed == [json.loads(ln) for ln in one.read_text().splitlines()]
     assert sum(t["state"] == "tracking" for t in replayed) > 0.9 * len(replayed)
 
 

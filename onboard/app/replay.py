@@ -24,15 +24,17 @@ compares them frame by frame.  That chain associates objects with each frame's c
 runs in this process (``--jobs 2`` falls back to one: the imaging process has no poses).
 
 Not replayed: operator selections (MAVLink camera TRACK_POINT/RECTANGLE/STOP are not recorded as
-such), and the pose buffer is not rebuilt from the raw MAVLink (the recorded poses are used).
+such), and the pose buffer is not rebuilt from the raw MAVLink (the recorded poses are used).  The UTC stamps
+(``time_unix_us``, ``time_unix_sigma_us``: the boot clock mapped through the autopilot's SYSTEM_TIME, not the
+pipeline's work) are the recorded track's of the same frame, whatever the replay's configuration; a frame with no
+recorded track has none.
 
 ``--rate realtime`` paces frames at their recorded receive times; ``max`` (default) runs as fast as
 the pipeline goes and prints the speed against real time.  The flight report (plots of a recording) is
 the ground side's: ``python -m groundsim report FILE.mcap``.
 
 ``--compare`` is a check: it exits 3 when the replay is not the recording's.  With a recording of the inline
-estimator that is any frame whose track differs in any field (floats bit for bit; the UTC stamps a replay cannot
-make aside), any frame in one of the two only, and any frame of objects that differs or is in one only.  With a
+estimator that is any frame whose track differs in any field (floats bit for bit), any frame in one of the two only, and any frame of objects that differs or is in one only.  With a
 worker's recording, whose estimates no replay gives bit for bit, it is any frame in one only, any frame whose
 track follows another object (``track_id``: an operator's selection, which is not replayed, shows so), any 3-D position
 beyond ``SIGMA_GATE`` sigmas of the two covariances together and any frame of objects that differs or is in one only
@@ -479,6 +481,7 @@ def replay(
     elif jobs == 2 and live is None:
         proc, conn = _start_imaging_process(rec, config)
     tracker = make_tracker(config) if conn is None else _PipedTracker(conn)
+    utc_of = _recorded_utc(rec.tracks)
     pipe = FramePipeline(config, poses, tracker, make_estimator(config), config.pose.geodetic_origin(), counter=counter)
     out: list = []
     out_objects: list = []
@@ -527,6 +530,7 @@ def replay(
             finally:
                 if live is not None:
                     live.on_pose(frame, poses.pose)
+            track = _with_recorded_utc(track, utc_of)
             objects = frame_objects(pipe, track)
             if live is not None:
                 live.on_track(track)
@@ -555,6 +559,29 @@ def replay(
     if rec.inputs:
         flight_s = (int(rec.inputs[-1]["received_ns"]) - int(rec.inputs[0]["received_ns"])) / 1e9
     return ReplayResult(out, fed, missing, refused, wall, flight_s, counter.counts, interrupted, out_objects)
+
+
+def _recorded_utc(tracks: list) -> dict:
+    """(seq, time_boot_us) -> the recorded tracks' ``(time_unix_us, time_unix_sigma_us)`` of that frame, in file
+    order (a duplicated frame's in turn); frames the daemon had no UTC for are left out."""
+    out: dict = {}
+    for t in tracks:
+        if t.get("time_unix_us") is not None:
+            out.setdefault((int(t["seq"]), int(t["time_boot_us"])), collections.deque()).append(
+                (int(t["time_unix_us"]), t.get("time_unix_sigma_us"))
+            )
+    return out
+
+
+def _with_recorded_utc(track, utc_of: dict):
+    """``track`` with the UTC stamp the daemon gave its frame: the boot clock's mapping to UTC comes from the
+    autopilot link's SYSTEM_TIME, not from the pipeline, so a replay takes the flight's, whatever its configuration
+    (a frame with no recorded track, or none with a stamp, has none)."""
+    got = utc_of.get((track.seq, track.time_boot_us))
+    if not got:
+        return track
+    unix_us, sigma_us = got.popleft()
+    return track.with_time_unix(unix_us, sigma_us)
 
 
 # --------------------------------------------------------------------------- comparison (pure)
@@ -592,25 +619,18 @@ def _matched(
     return pairs, unmatched
 
 
-#: track keys a replay does not make: the daemon stamps UTC from the autopilot link's SYSTEM_TIME, not the pipeline
-UNREPLAYED_KEYS = frozenset({"time_unix_us", "time_unix_sigma_us"})
 #: keys added to the track after recordings that lack them were made, with the value their absence means
 _ABSENT_MEANS = {"compensated_us": 0, "estimate_epoch": 0}
 
 
 def compare_tracks(recorded: list, replayed: list) -> tuple[list[FrameDiff], int, int]:
     """Per-frame differences of two track lists matched on (seq, time_boot_us); returns (diffs, matched,
-    unmatched).  A field differs when its JSON values differ at all (floats bit for bit); the
-    ``UNREPLAYED_KEYS`` are not compared."""
+    unmatched).  A field differs when its JSON values differ at all (floats bit for bit)."""
     pairs, unmatched = _matched(recorded, replayed)
     diffs = []
     for a, b in pairs:
         names = tuple(
-            sorted(
-                k
-                for k in (set(a) | set(b)) - UNREPLAYED_KEYS
-                if a.get(k, _ABSENT_MEANS.get(k)) != b.get(k, _ABSENT_MEANS.get(k))
-            )
+            sorted(k for k in set(a) | set(b) if a.get(k, _ABSENT_MEANS.get(k)) != b.get(k, _ABSENT_MEANS.get(k)))
         )
         if not names:
             continue
@@ -689,14 +709,9 @@ def compare_within_sigma(recorded: list, replayed: list, gate_sigma: float = SIG
 
 def compare_objects(recorded: list, replayed: list) -> tuple[int, int, int]:
     """Two lists of ``irtrack.objects/1`` messages matched on (time_boot_us, frame_index) in order; returns
-    (matched, identical, unmatched): a frame is identical when its message is equal (floats bit for bit), the
-    ``UNREPLAYED_KEYS`` aside."""
-
-    def made(m):
-        return {k: v for k, v in m.items() if k not in UNREPLAYED_KEYS}
-
+    (matched, identical, unmatched): a frame is identical when its message is equal (floats bit for bit)."""
     pairs, unmatched = _matched(recorded, replayed, ("time_boot_us", "frame_index"))
-    return len(pairs), sum(made(a) == made(b) for a, b in pairs), unmatched
+    return len(pairs), sum(a == b for a, b in pairs), unmatched
 
 
 def _print_compare(diffs, matched: int, unmatched: int, within=None, worker=None, file=None) -> None:
