@@ -43,6 +43,189 @@ _SUMMARY = {
 }
 _SUMMARY_OR_NULL = {**_SUMMARY, "type": ["object", "null"]}
 
+_INT = {"type": "integer"}
+_INT_N = {"type": ["integer", "null"]}
+_NUM = {"type": "number"}
+_NUM_N = {"type": ["number", "null"]}
+_STR = {"type": "string"}
+_STR_N = {"type": ["string", "null"]}
+_BOOL = {"type": "boolean"}
+_INTS = {"type": "array", "items": _INT}
+_STRS = {"type": "array", "items": _STR}
+_COUNTS = {"type": "object", "additionalProperties": _INT, "description": "count by reason or kind"}
+
+
+def _section(description: str, properties: dict[str, Any], nullable: bool = False) -> dict[str, Any]:
+    """A status section's schema: every key always written (``required``), ``nullable`` the section itself."""
+    return {
+        "type": ["object", "null"] if nullable else "object",
+        "description": description,
+        "properties": properties,
+        "required": list(properties),
+    }
+
+
+# The sections other components make (the docstring of each producer says what a key holds); the tests hold each
+# producer's dict to its schema key for key, and the recorded status of a real daemon to all of them
+_LINK = _section(
+    "the MAVLink link's state (onboard.io.mavlink_link.LinkStatus); null without a link",
+    {
+        "state": _STR,
+        "autopilot_sysid": _INT_N,
+        "heartbeat_age_s": _NUM_N,
+        "rates_confirmed": _INTS,
+        "rates_pending": _INTS,
+        "rates_refused": _INTS,
+        "clock_synced": _BOOL,
+        "messages_rx": _INT,
+        "link_losses": _INT,
+        "reboots": _INT,
+        "gnss": _section(
+            "the latest GPS_RAW_INT (onboard.core.gnss.GnssState.summary); null until one",
+            {
+                "fix": _STR,
+                "fix_type": _INT,
+                "satellites": _INT_N,
+                "hdop": _NUM_N,
+                "vdop": _NUM_N,
+                "h_acc_m": _NUM_N,
+                "v_acc_m": _NUM_N,
+                "age_s": _NUM_N,
+                "degraded_s": _NUM_N,
+            },
+            nullable=True,
+        ),
+        "messages_refused": _INT,
+        "streams": {
+            "type": "object",
+            "description": "per requested stream, by message name",
+            "additionalProperties": _section(
+                "a requested stream's rates, Hz (measured: null at first)",
+                {"msg_id": _INT, "requested_hz": _NUM, "measured_hz": _NUM_N},
+            ),
+        },
+    },
+    nullable=True,
+)
+_TIME_OFFSET = _section(
+    "the camera clock's offset estimate (onboard.estimation.time_offset); null when time_offset.enabled is false",
+    {
+        "estimate_ms": _NUM_N,
+        "sigma_ms": _NUM_N,
+        "state": _STR,
+        "compensated_ms": _NUM,
+        "blocks": _INT,
+        "frames": _INT,
+        "refused_blocks": _INT,
+        "excitation_mradps": _NUM_N,
+        "warn_threshold_ms": _NUM,
+    },
+    nullable=True,
+)
+_UTC = _section(
+    "boot clock -> UTC (onboard.core.utc_clock.UtcClock.status): state none (numbers null) or ok",
+    {
+        "state": {"type": "string", "enum": ["none", "ok"]},
+        "source": _STR_N,
+        "offset_us": _INT_N,
+        "sigma_us": _INT_N,
+        "skew_ppm": _NUM_N,
+        "samples": _INT,
+        "newest_boot_us": _INT_N,
+        "disputed_us": _INT_N,
+        "steps": _INT,
+    },
+)
+_CAMERA = _section(
+    "the MAVLink camera component (onboard.io.camera_protocol.CameraProtocol.status and the selection's outcome)",
+    {
+        "component_id": _INT,
+        "selection_mode": {"type": "string", "enum": ["none", "point", "rectangle"]},
+        "image_status_interval_s": _NUM_N,
+        "geo_status_interval_s": _NUM_N,
+        "pending_track_requests": _INT,
+        "last_refusal": _STR_N,
+        "counters": _COUNTS,
+        "endpoints": _STRS,
+        "tracker_mode": _STR,
+        "tracker_holding": _BOOL,
+        "last_selection": _section(
+            "the operator's last selection; null before one",
+            {"kind": _STR, "accepted": _BOOL, "reason": _STR_N},
+            nullable=True,
+        ),
+    },
+)
+_VIDEO = _section(
+    "the H.264 video stream (onboard.io.video)",
+    {
+        "destination": _STR,
+        "transport": _STR,
+        "frames_in": _INT,
+        "encoded": _INT,
+        "dropped": _INT,
+        "errors": _INT,
+        "datagrams": _INT,
+        "send_errors": _INT,
+        "refused": _INT,
+        "clock_resets": _INT,
+        "encode_ms_p50": _NUM_N,
+        "encode_ms_p99": _NUM_N,
+        "camera_rate_hz": _NUM_N,
+    },
+)
+_RECORD = _section(
+    "the flight recorder (onboard.io.record.FlightRecorder.stats)",
+    {
+        "path": _STR,
+        "files": _INT,
+        "current_file": _STR_N,
+        "messages_written": _INT,
+        "bytes_written": _INT,
+        "dropped": _INT,
+        "dropped_by_topic": _COUNTS,
+        "dropped_at_close": _INT,
+        "queue_bytes": _INT,
+        "max_queue_bytes": _INT,
+        "write_errors": _INT,
+        "writer_cpu_s": _NUM,
+        "syncs": _INT,
+        "stopped": _STR_N,
+        "lost_files": _STRS,
+    },
+)
+_LIVE_VIEW = _section(
+    "the Foxglove live view (onboard.io.live_view.LiveView.stats): clients connected now, client_errors the "
+    "server's errors about what clients sent by kind, clients_reset viewers gone without closing their WebSocket",
+    {
+        "port": _INT,
+        "published": _INT,
+        "dropped": _INT,
+        "dropped_by_kind": _COUNTS,
+        "errors": _INT,
+        "clients": _INT,
+        "client_errors": _COUNTS,
+        "clients_reset": _INT,
+    },
+)
+_GUIDANCE = _section(
+    "the observer guidance (onboard.app.guidance_tap)",
+    {
+        "in_loop": _BOOL,
+        "updates": _INT,
+        "advised": _INT,
+        "published": _INT,
+        "publish_errors": _INT,
+        "skipped": _COUNTS,
+        "last_status": _STR_N,
+        "last_manoeuvre": _STR_N,
+        "setpoints": _section(
+            "setpoints to the autopilot: the gate's state and why, what was sent, stops and advice ends by reason",
+            {"state": _STR, "why": _STR, "sent": _INT, "errors": _INT, "stops": _COUNTS, "advice_ends": _COUNTS},
+        ),
+    },
+)
+
 #: Every top-level key :func:`build_status` writes, in its order, with its JSON Schema (its docstring says what each
 #: holds); a test holds :func:`build_status` to it key for key
 STATUS_JSON_KEYS: tuple[tuple[str, dict[str, Any]], ...] = (
@@ -79,7 +262,7 @@ STATUS_JSON_KEYS: tuple[tuple[str, dict[str, Any]], ...] = (
     ("stages_ms", {"type": ["object", "null"], "additionalProperties": _SUMMARY}),
     ("capture_to_track_ms", _SUMMARY_OR_NULL),
     ("rejected", {"type": "object", "additionalProperties": {"type": "integer"}, "description": "count by reason"}),
-    ("link", {"type": ["object", "null"], "description": "the MAVLink link's state"}),
+    ("link", _LINK),
     (
         "cpu",
         {
@@ -111,7 +294,7 @@ STATUS_JSON_KEYS: tuple[tuple[str, dict[str, Any]], ...] = (
             },
         },
     ),
-    ("camera_time_offset", {"type": ["object", "null"], "description": "null when time_offset.enabled is false"}),
+    ("camera_time_offset", _TIME_OFFSET),
     (
         "track",
         {
@@ -135,21 +318,12 @@ STATUS_JSON_KEYS: tuple[tuple[str, dict[str, Any]], ...] = (
 #: ``utc`` always; ``camera`` with the MAVLink camera; each output tap's own (``video``, ``record``, ``live_view``,
 #: ``guidance``) when configured
 STATUS_SECTION_KEYS: tuple[tuple[str, dict[str, Any], bool], ...] = (
-    ("utc", {"type": "object", "description": "boot clock -> UTC (onboard.core.utc_clock)"}, True),
-    ("camera", {"type": "object", "description": "the MAVLink camera component (gcs)"}, False),
-    ("video", {"type": "object", "description": "the H.264 video stream"}, False),
-    ("record", {"type": "object", "description": "the flight recorder (FlightRecorder.stats)"}, False),
-    (
-        "live_view",
-        {
-            "type": "object",
-            "description": "the Foxglove live view (LiveView.stats): port, published, dropped (dropped_by_kind), "
-            "errors, clients (connected now), client_errors (the server's errors about what clients sent, by kind), "
-            "clients_reset (viewers gone without closing their WebSocket)",
-        },
-        False,
-    ),
-    ("guidance", {"type": "object", "description": "the observer guidance"}, False),
+    ("utc", _UTC, True),
+    ("camera", _CAMERA, False),
+    ("video", _VIDEO, False),
+    ("record", _RECORD, False),
+    ("live_view", _LIVE_VIEW, False),
+    ("guidance", _GUIDANCE, False),
 )
 
 

@@ -6,6 +6,7 @@ checked in test_record_daemon.py and test_objects_output.py."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -15,11 +16,14 @@ from groundsim.world.truth import TRUTH_COLUMNS, TruthRow, truth_json, truth_jso
 from onboard.core.frames import GeodeticOrigin
 from onboard.core.status import STATUS_JSON_KEYS, STATUS_SCHEMA
 from onboard.core.track import TRACK_JSON_KEYS, TRACK_SCHEMA, LineOfSight, Track, track_to_json
+from onboard.core.utc_clock import UtcClock
 from onboard.io.foxglove_messages import JSON_SCHEMAS, TRUTH_SCHEMA
+from onboard.io.mavlink_link import LinkStatus
 from tests.fakes import idle_status, tracking_track
 from tests.json_schema_check import check
 
 ORIGIN = GeodeticOrigin(47.397742, 8.545594, 488.0)
+SUMMARY = {"n": 0, "p50": None, "p99": None, "max": None}
 
 
 def _full_track() -> Track:
@@ -76,11 +80,47 @@ def test_guidance_json_has_exactly_the_schemas_keys_in_order_and_conforms():
             "pose_wait_ms": {"n": 0, "p50": None, "p99": None, "max": None},
             "queue_wait_ms": {"n": 0, "p50": None, "p99": None, "max": None},
             "stages_ms": {"imaging": {"n": 1, "p50": 1.0, "p99": 1.0, "max": 1.0}},
-            "link": {"state": "connected"},
+            "link": dataclasses.asdict(
+                LinkStatus(
+                    state="connected",
+                    autopilot_sysid=1,
+                    heartbeat_age_s=0.4,
+                    rates_confirmed=(31, 33),
+                    rates_pending=(),
+                    rates_refused=(285,),
+                    clock_synced=True,
+                    messages_rx=500,
+                    link_losses=0,
+                    reboots=0,
+                    gnss={
+                        "fix": "rtk_fixed",
+                        "fix_type": 6,
+                        "satellites": 14,
+                        "hdop": 0.8,
+                        "vdop": None,
+                        "h_acc_m": 0.028,
+                        "v_acc_m": 0.02,
+                        "age_s": 0.2,
+                        "degraded_s": None,
+                    },
+                    messages_refused=0,
+                    streams={"ATTITUDE_QUATERNION": {"msg_id": 31, "requested_hz": 100.0, "measured_hz": None}},
+                )
+            ),  # fmt: skip
             "last_track": tracking_track(),
             "warnings": [{"code": "no_frames", "message": "check the camera"}],
             "withheld_because": ["gimbal_mismatch"],
-            "camera_time_offset": {"estimate_ms": 1.5, "state": "estimating"},
+            "camera_time_offset": {
+                "estimate_ms": 1.5,
+                "sigma_ms": None,
+                "state": "estimating",
+                "compensated_ms": 0.0,
+                "blocks": 1,
+                "frames": 40,
+                "refused_blocks": 0,
+                "excitation_mradps": None,
+                "warn_threshold_ms": 20.0,
+            },  # fmt: skip
             "rejected": {"frame_bad_magic": 2},
         },
     ],
@@ -94,10 +134,38 @@ def test_status_json_conforms_with_the_sections_the_service_adds(fields):
     assert list(status) == [k for k, _ in STATUS_JSON_KEYS]
     schema = JSON_SCHEMAS[STATUS_SCHEMA]
     assert check(status, schema) == ["$: 'utc' is a required property"]  # the service's: added below
-    status["utc"] = {"state": "none"}
-    status["record"] = {"dropped": 0}
+    status["utc"] = UtcClock().status()
     status["cpu"].update(gets_share=0.5, throttled_share=None, needs_share=0.5, throttled_periods=0, quota_cores=2.0)
     assert check(status, schema) == []
+
+
+def test_the_status_sections_of_their_producers_conform():
+    """The sections other components add (utc, camera, live view, ...) were bare objects in the schema a recording
+    carries: a reader of the file learnt nothing of their keys (a helper's audit with the mcap reader found seven)."""
+    from onboard.io.live_view import LiveView, LiveViewConfig
+    from tests.onboard.test_camera_protocol import _proto  # a CameraProtocol, the camera section's producer
+
+    status = idle_status(processing_ms=SUMMARY, latency_ms=SUMMARY, pose_wait_ms=SUMMARY)
+    status["utc"] = UtcClock().status()
+    cam = _proto().status()
+    status["camera"] = {
+        **cam, "endpoints": ["udpout:127.0.0.1:14550"], "tracker_mode": "auto", "tracker_holding": False,
+        "last_selection": {"kind": "point", "accepted": False, "reason": "no tracked object in 40 px of (1,2)"},
+    }  # fmt: skip
+    status["guidance"] = {
+        "in_loop": False, "updates": 3, "advised": 1, "published": 1, "publish_errors": 0, "skipped": {},
+        "last_status": "advise", "last_manoeuvre": "weave", "setpoints": {"state": "off",
+        "why": "guidance.enabled is false", "sent": 0, "errors": 0, "stops": {}, "advice_ends": {"answer_no_gain": 1}},
+    }  # fmt: skip
+    status["live_view"] = LiveView(LiveViewConfig(), port=0).stats()  # not started: no socket
+    assert check(status, JSON_SCHEMAS[STATUS_SCHEMA]) == []
+    # a section's schema lists its keys: one missing, or one the producer adds that the schema does not declare
+    del status["camera"]["tracker_holding"]
+    status["utc"]["new_key"] = 1
+    assert check(status, JSON_SCHEMAS[STATUS_SCHEMA]) == [
+        "camera: 'tracker_holding' is a required property",
+        "utc: Additional properties are not allowed ('new_key' was unexpected)",
+    ]
 
 
 def test_truth_json_conforms_to_its_schema_made_from_the_row():
