@@ -39,7 +39,7 @@ algorithms; closed loop: ``groundsim eval``'s batch columns); ``crb_range_sigma_
 range sigma an estimator knowing the motion model could report.
 
 Resumability.  A run is identified by :func:`run_id`, a SHA-256 of its parameters (scenario and the
-digest of its file, geometry, noise case and the digest of its numbers, algorithm, seed, mode, duration,
+digest of what its file says (:func:`~groundsim.world.scenario.scenario_digest`: not its comments or layout), geometry, noise case and the digest of its numbers, algorithm, seed, mode, duration,
 noise model, the onboard configuration's digest, :data:`RESULT_SCHEMA`).  Each finished run is appended
 to ``OUT/runs.jsonl`` as one line, flushed and fsynced, the moment its result arrives; a new invocation
 reads it (a line cut short by a kill, damaged, or not a run's row is skipped, one warning names the
@@ -109,7 +109,7 @@ from groundsim.evaluation.parallel import (
 )
 from groundsim.io.stop_signals import finish_despite_signals, signals_held, sigterm_as_ctrl_c
 from groundsim.world.noise_cases import NoiseCase, load_noise_cases
-from groundsim.world.scenario import Scenario, load_scenario
+from groundsim.world.scenario import Scenario, load_scenario, scenario_digest
 from onboard.core.errors import ConfigError
 from onboard.estimation.metrics import nees_per_point
 
@@ -190,7 +190,7 @@ def plan_runs(spec: CampaignSpec, onboard_digest: str) -> list[RunParams]:
     cases = load_noise_cases()
     out = []
     for path in spec.scenario_paths:
-        sdig = _digest(Path(path).read_bytes())
+        sdig = scenario_digest(path)  # what the file says: a comment or the layout edited reruns nothing
         sc_name = load_scenario(path).name
         for g in spec.geometries:
             for n in spec.noise:

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import dataclasses
 import datetime
+import hashlib
 import logging
 import math
 import sys
@@ -96,6 +97,7 @@ __all__ = [
     "REFERENCE_GIMBAL",
     "DEFAULT_ORIGIN",
     "load_scenario",
+    "scenario_digest",
     "scenario_from_dict",
     "reference_scenario_paths",
     "resolve_scenario_path",
@@ -839,6 +841,21 @@ def scenario_from_dict(d, source="<dict>") -> Scenario:
 def load_scenario(path) -> Scenario:
     """Read and validate one scenario file; raises :class:`ScenarioError` (one line) on any problem."""
     return scenario_from_dict(read_spec_yaml(path), source=Path(path))
+
+
+def scenario_digest(path) -> str:
+    """12 hex digits naming what a scenario file says: SHA-256 of its validated model (:class:`ScenarioFile`, every
+    default filled in) without its ``description``.  A comment, the layout, the key order, how a number is written
+    or the description leave it as it is; any value a run reads changes it.  Raises :class:`ScenarioError` as
+    :func:`load_scenario` does."""
+    source = Path(path)
+    try:
+        f = build(ScenarioFile, read_spec_yaml(source), none_is_default=False)
+    except SchemaError as exc:
+        raise exc.as_(ScenarioError, source) from None
+    # the model's repr lists every field, defaults included, with numbers as Python writes them: canonical text
+    text = repr(dataclasses.replace(f, description=""))
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()[:12]
 
 
 def scenarios_dir() -> Path:

@@ -214,6 +214,31 @@ def test_run_ids_are_stable_and_differ_by_every_parameter(tmp_path):
     assert set(ids).isdisjoint(run_id(r) for r in plan_runs(spec, "another onboard config"))
 
 
+def test_a_scenario_edited_only_in_its_comments_or_layout_keeps_its_run_ids(tmp_path):
+    """The run id covers what a scenario file says, not its text: a comment, indentation, key order, a number
+    written another way or the description changed reruns nothing (every run had been redone); a value changed
+    does."""
+    import yaml
+
+    path = tmp_path / "P1.yaml"
+    text = reference_scenario_paths()["P1"].read_text()
+    path.write_text(text)
+
+    def ids():
+        return [run_id(r) for r in plan_runs(_spec(tmp_path, scenarios=["P1.yaml"]), "x")]
+
+    before = ids()
+    data = yaml.safe_load(text)
+    data["description"] = "another description"
+    data["duration_s"] = int(data["duration_s"])  # 10 for 10.0
+    reordered = dict(reversed(list(data.items())))
+    path.write_text("# a comment only\n" + yaml.safe_dump(reordered, indent=4, sort_keys=False) + "# and another\n")
+    assert ids() == before
+    data["seed"] = int(data.get("seed", 0)) + 1
+    path.write_text(yaml.safe_dump(data))
+    assert set(ids()).isdisjoint(before)
+
+
 def test_the_shipped_example_spec_is_valid():
     spec = load_spec(REPO / "config/campaigns/example.yaml")
     assert spec.mode == "synthetic" and set(spec.algorithms) == {"map", "paper", "rpekf"} and len(spec.geometries) == 3
