@@ -635,7 +635,11 @@ def _add_campaign(p: argparse.ArgumentParser) -> None:
         metavar="tcp://HOST:PORT",
         help="run the jobs on this Dask distributed scheduler's workers instead of a local pool (docs/campaigns.md)",
     )
-    p.add_argument("--fresh", action="store_true", help="forget the runs already in DIR/runs.jsonl and redo them all")
+    p.add_argument(
+        "--fresh",
+        action="store_true",
+        help="forget the runs already in DIR/runs.jsonl (another campaign's too) and redo them all",
+    )
     p.add_argument("--retry-failed", action="store_true", help="redo the runs recorded as failed")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(handler=_cmd_campaign)

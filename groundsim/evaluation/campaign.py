@@ -94,7 +94,7 @@ from groundsim.evaluation.campaign_spec import (
     derive_scenario,
     load_spec,
 )
-from groundsim.evaluation.out_dir import make_out_dir, refuse_foreign_out
+from groundsim.evaluation.out_dir import make_out_dir, refuse_foreign_out, write_replacing
 from groundsim.evaluation.parallel import (
     auto_deadline_s,
     check_run_timeout,
@@ -115,6 +115,8 @@ from onboard.estimation.metrics import nees_per_point
 
 __all__ = [
     "LOG_NAME",
+    "MARK_NAME",
+    "check_same_campaign",
     "RESULT_SCHEMA",
     "RunParams",
     "run_id",
@@ -138,6 +140,7 @@ log = logging.getLogger(__name__)
 RESULT_SCHEMA = 1  # bump when a metric's definition changes: every run's id changes, nothing is reused
 MIN_ASSUMED_PIXEL_SIGMA_PX = 0.05  # the estimator is never told "no pixel noise" (a zero weight is singular)
 LOG_NAME = "runs.jsonl"
+MARK_NAME = "campaign.json"  # which campaign's runs the folder's log holds: {"name": ..., "spec": ...}
 SCHEDULER_CONNECT_TIMEOUT_S = 10.0  # --scheduler: how long to wait for the Dask scheduler to answer
 
 
@@ -662,10 +665,56 @@ def append_rows(path: Path, rows: Iterable[dict]) -> None:
 def check_outputs(out: Path) -> None:
     """Refuses, before any run, outputs that could not be written after the runs: the log must open for
     appending, and the table, the report and the figure must not be directories (one-line ConfigError)."""
-    for name in (LOG_NAME, TABLE_NAME, PARQUET_NAME, REPORT_NAME, FIGURE_NAME):
+    for name in (LOG_NAME, MARK_NAME, TABLE_NAME, PARQUET_NAME, REPORT_NAME, FIGURE_NAME):
         if (out / name).is_dir():
             raise ConfigError(f"{out / name}: cannot write: Is a directory")
     append_rows(out / LOG_NAME, ())
+
+
+def _held_campaign(out: Path) -> tuple[str, str] | None:
+    """(name, spec file) of the campaign whose runs ``out``'s log holds, None when it holds none (no log, or one
+    emptied by ``--fresh``): read from :data:`MARK_NAME`, or, in a folder written before it existed, from the
+    report's title (the spec file then unknown)."""
+    log_path = out / LOG_NAME
+    if not log_path.is_file() or log_path.stat().st_size == 0:
+        return None
+    try:
+        mark = json.loads((out / MARK_NAME).read_text(encoding="utf-8"))
+        if isinstance(mark, dict) and isinstance(mark.get("name"), str):
+            return mark["name"], str(mark.get("spec", "?"))
+    except (OSError, ValueError):
+        pass
+    try:
+        with (out / REPORT_NAME).open(encoding="utf-8") as f:
+            title = f.readline().strip()
+    except (OSError, ValueError):
+        return None
+    prefix = "# Campaign "
+    return (title[len(prefix) :], "unknown") if title.startswith(prefix) else None
+
+
+def check_same_campaign(out: Path, spec: CampaignSpec) -> None:
+    """ConfigError naming ``out`` and both campaigns when its log holds another campaign's runs: its table and
+    report would be this one's while its log held both, and each campaign run there in turn would overwrite the
+    other's.  A campaign is its name (what names its default folder): a spec edited (a seed added) or moved
+    keeps resuming its folder."""
+    held = _held_campaign(out)
+    if held is None or held[0] == spec.name:
+        return
+    raise ConfigError(
+        f"--out {out}: holds the runs of campaign {held[0]!r} (spec {held[1]}), not of {spec.name!r} "
+        f"(spec {spec.source}); give another --out, or --fresh to forget the runs of {held[0]!r} and start "
+        f"{spec.name!r} there"
+    )
+
+
+def _mark_campaign(out: Path, spec: CampaignSpec) -> None:
+    """Record in ``out`` that its log is ``spec``'s campaign's (:func:`check_same_campaign` reads it)."""
+    text = json.dumps({"name": spec.name, "spec": str(spec.source)}, indent=1) + "\n"
+    try:
+        write_replacing(out / MARK_NAME, lambda p: p.write_text(text, encoding="utf-8"))
+    except OSError as exc:
+        raise ConfigError(f"{out / MARK_NAME}: cannot write: {exc.strerror or exc}") from None
 
 
 # --------------------------------------------------------------------------- execution
@@ -828,6 +877,8 @@ def run_campaign(
     out.mkdir(parents=True, exist_ok=True)
     log_path = out / LOG_NAME
     check_outputs(out)
+    if not fresh:  # before anything runs or is written: another campaign's folder is refused as it is
+        check_same_campaign(out, spec)
     planned = plan_runs(spec, onboard_digest)
     ids = [run_id(p) for p in planned]
     client = None
@@ -843,6 +894,7 @@ def run_campaign(
             # emptied, not removed: the folder stays a campaign's (refuse_foreign_out reads the log's presence),
             # so the same command run again after an interruption before the first result still resumes it
             log_path.write_bytes(b"")
+        _mark_campaign(out, spec)
         done, bad = reusable_rows(log_path, ids)
         if bad:  # said once: the log is read again below for the table, its skipped lines not repeated
             log.warning("%s", _skipped_text(log_path, bad))

@@ -289,3 +289,45 @@ def test_cli_a_folder_that_is_not_an_earlier_campaigns_is_refused_untouched(tmp_
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and f"--out {out}: not empty and not an earlier groundsim campaign's folder" in err, err
     assert sorted(p.name for p in out.iterdir()) == ["report.md"] and (out / "report.md").read_text() == "the user's\n"
+
+
+def _files(out: Path) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in sorted(out.iterdir()) if p.is_file()}
+
+
+def test_a_folder_of_another_campaign_is_refused_untouched_unless_fresh(tmp_path, capsys):
+    """--out naming the folder of another campaign (another name) is one line naming the folder and both campaigns,
+    nothing written (it had reused the other's matching runs, appended its own to the other's log and replaced
+    the other's table and report); --fresh starts it over there; the same campaign edited (a seed more) resumes."""
+    out = tmp_path / "out"
+    a = tmp_path / "a.yaml"
+    a.write_text("name: a\nscenarios: [P1]\nnoise: [RTK]\nalgorithms: [paper]\nseeds: 1\nduration_s: 1.0\n")
+    b = tmp_path / "b.yaml"
+    b.write_text("name: b\nscenarios: [P1]\nnoise: [RTK]\nalgorithms: [paper]\nseeds: 2\nduration_s: 1.0\n")
+    run = ["--out", str(out), "--workers", "1", "--no-progress"]
+    assert cli_main(["campaign", str(a), *run]) == 0
+    before = _files(out)
+    capsys.readouterr()
+    assert cli_main(["campaign", str(b), *run]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err, err
+    assert f"--out {out}: holds the runs of campaign 'a' (spec {a}), not of 'b' (spec {b})" in err, err
+    assert "--fresh" in err and _files(out) == before
+    assert cli_main(["campaign", str(b), *run, "--fresh"]) == 0
+    assert {r["seed"] for r in read_log(out / LOG_NAME)[0].values()} == {0, 1}
+    assert json.loads((out / "campaign.json").read_text())["name"] == "b"
+    b.write_text(b.read_text().replace("seeds: 2", "seeds: 3"))
+    capsys.readouterr()
+    assert cli_main(["campaign", str(b), *run]) == 0
+    assert "2 reused" in capsys.readouterr().out
+
+
+def test_a_folder_written_before_the_campaign_was_recorded_is_known_by_its_report(tmp_path):
+    """A folder of an earlier version (a log, no campaign.json) is another campaign's when its report's title says
+    so."""
+    out = tmp_path / "out"
+    run_campaign(_spec(tmp_path, name="a"), out, workers=1, progress=False)
+    (out / "campaign.json").unlink()
+    with pytest.raises(ConfigError, match=r"holds the runs of campaign 'a' \(spec unknown\), not of 'b'"):
+        run_campaign(_spec(tmp_path, name="b"), out, workers=1, progress=False)
+    run_campaign(_spec(tmp_path, name="a"), out, workers=1, progress=False)  # its own: resumed
