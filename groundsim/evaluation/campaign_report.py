@@ -25,6 +25,7 @@ __all__ = [
     "table_rows",
     "write_table",
     "table2_rows",
+    "paper_table2_pct",
     "manoeuvre_rows",
     "works_from",
     "write_report",
@@ -32,6 +33,10 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
+#: the noise cases of the reference study the paper's scenarios come with (/work/shared/REFERENCE_SCENARIOS.md);
+#: ``exact`` is the simulator's own, no measurement the paper could have made
+PAPER_NOISE_CASES = frozenset({"px0.3", "RTK", "GNSS"})
+PAPER_DURATION_S = 10.0  # the paper's Table 2: F = 300 frames at 30 Hz
 GOOD_ERR_PCT = 2.0  # "reconstruction works": median err/range at most this (the verdict table's good run)
 HONEST_BEYOND_3SIGMA = 0.01  # a run is honest when at most this fraction of published estimates is beyond 3 sigma
 TABLE_NAME, PARQUET_NAME, REPORT_NAME, FIGURE_NAME = "runs.csv", "runs.parquet", "report.md", "manoeuvre.png"
@@ -170,9 +175,11 @@ def _medians(rs: list[dict], columns: dict[str, str]) -> dict:
     return {key: _med(r.get(col) for r in rs) for key, col in columns.items()}
 
 
-def table2_rows(rows: list[dict]) -> tuple[list[dict], bool]:
+def table2_rows(rows: list[dict], shipped: dict[str, str] | None = None) -> tuple[list[dict], bool]:
     """Per (algorithm, scenario, noise): medians over the runs at the reference geometry (or over every
-    geometry when the campaign has no reference-geometry runs: the flag says which)."""
+    geometry when the campaign has no reference-geometry runs: the flag says which), and ``paper_pct``, the paper's
+    figure where it applies (:func:`paper_table2_pct` with ``shipped``, the shipped scenarios' digests; NaN
+    without them)."""
     ok = [r for r in rows if r.get("status") == "ok"]
     ref = [r for r in ok if r["range_scale"] == 1.0 and r["aspect_deg"] == 0.0 and r["manoeuvre_scale"] == 1.0]
     use, at_ref = (ref, True) if ref else (ok, False)
@@ -193,9 +200,39 @@ def table2_rows(rows: list[dict]) -> tuple[list[dict], bool]:
                 "runs": len(rs),
                 **_medians(rs, _ACCURACY_MEDIANS),
                 "honest": len(honest),
+                "paper_pct": paper_table2_pct(rs, at_ref, shipped) if shipped is not None else math.nan,
             }
         )
     return out, at_ref
+
+
+def paper_table2_pct(rs: list[dict], at_ref: bool, shipped_digests: dict[str, str]) -> float:
+    """The paper's Table 2 figure for a group of runs (one scenario and noise case), NaN where the paper has none:
+    unless the runs are at the reference geometry (``at_ref``), of one of its scenarios as shipped (the row's
+    ``scenario_digest`` is ``shipped_digests[name]``: a file of that name saying something else is another
+    scenario), under a noise case of the reference study (:data:`PAPER_NOISE_CASES`) and flown whole
+    (:data:`PAPER_DURATION_S`)."""
+    from groundsim.evaluation.report import PAPER_TABLE2_PCT
+
+    if not rs or not at_ref:
+        return math.nan
+    s = rs[0]["scenario"]
+    if s not in PAPER_TABLE2_PCT or any(r.get("scenario_digest") != shipped_digests.get(s) for r in rs):
+        return math.nan
+    if any(r["noise"] not in PAPER_NOISE_CASES for r in rs):
+        return math.nan
+    if any(r.get("duration_s") is not None and r["duration_s"] < PAPER_DURATION_S - 1e-9 for r in rs):
+        return math.nan
+    return float(PAPER_TABLE2_PCT[s])
+
+
+def _shipped_digests() -> dict[str, str]:
+    """Digest of each of the paper's scenarios as shipped (config/scenarios), by name."""
+    from groundsim.evaluation.report import PAPER_TABLE2_PCT
+    from groundsim.world.scenario import reference_scenario_paths, scenario_digest
+
+    paths = reference_scenario_paths()
+    return {name: scenario_digest(paths[name]) for name in PAPER_TABLE2_PCT if name in paths}
 
 
 def manoeuvre_rows(rows: list[dict]) -> list[dict]:
@@ -310,7 +347,7 @@ def write_report(out: Path, spec: CampaignSpec, rows: list[dict], run_info: dict
     files = {}
     ok = [r for r in rows if r.get("status") == "ok"]
     failed = [r for r in rows if r.get("status") != "ok"]
-    t2, at_ref = table2_rows(rows)
+    t2, at_ref = table2_rows(rows, _shipped_digests())
     mrows = manoeuvre_rows(rows)
     from groundsim.evaluation.campaign_plots import plot_manoeuvre
     from groundsim.evaluation.scoring import OBSERVABLE_AFTER_S
@@ -347,7 +384,11 @@ def write_report(out: Path, spec: CampaignSpec, rows: list[dict], run_info: dict
         " *observable*: err/range on the frames the algorithm called observable; *published*: "
         "every finite estimate once *settled* (from 5 s on; half the run if shorter than 10 s); *final*: last frame. Honest: runs with at most 1 % of published "
         "estimates beyond 3 sqrt(trace cov), from the first frame (NEES (published) is over the settled ones). CRB: "
-        "Bayesian bound at the truth (RMS over the window); CRB range sigma: its median range sigma over range.\n"
+        "Bayesian bound at the truth (RMS over the window); CRB range sigma: its median range sigma over range. "
+        f"*paper Table 2*: the paper's figure, given only beside its own scenarios ({', '.join(PAPER_TABLE2_PCT)} "
+        "as shipped) at the reference geometry, flown whole "
+        f"({PAPER_DURATION_S:g} s) under a noise case of the reference study ({', '.join(sorted(PAPER_NOISE_CASES))}); "
+        "'-' elsewhere, where the paper has no figure.\n"
     )
     for a in dict.fromkeys(r["algorithm"] for r in t2):
         L.append(f"### {a}\n")
@@ -357,9 +398,8 @@ def write_report(out: Path, spec: CampaignSpec, rows: list[dict], run_info: dict
             "CRB range sigma | batch MAP err/range |"
         )
         for r in (x for x in t2 if x["algorithm"] == a):
-            paper = PAPER_TABLE2_PCT.get(r["scenario"])
             L.append(
-                f"| {r['scenario']} | {r['noise']} | {r['runs']} | {f'{paper:.2f} %' if paper else '-'} | "
+                f"| {r['scenario']} | {r['noise']} | {r['runs']} | {_pct(r['paper_pct'])} | "
                 f"{_pct(r['err_obs'])} | {_pct(r['err_pub'])} | {_pct(r['err_final'])} | {_num(r['rmse_pub'])} | "
                 f"{_pct(100 * r['obs_share'], 0)} | {r['honest']}/{r['runs']} | {_num(r['nees_pub'], 1)} | "
                 f"{_num(r['crb'])} | {_pct(r['crb_sig'], 1)} | {_pct(r['batch'])} |"

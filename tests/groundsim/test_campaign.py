@@ -23,6 +23,8 @@ from groundsim.evaluation.campaign_report import (
     REPORT_NAME,
     TABLE_NAME,
     confident_wrong_rows,
+    table2_rows,
+    write_report,
 )
 from groundsim.evaluation.campaign_spec import (
     Geometry,
@@ -33,7 +35,7 @@ from groundsim.evaluation.campaign_spec import (
     spec_from_dict,
 )
 from groundsim.world.motion import Circular, Cubic
-from groundsim.world.scenario import load_scenario, reference_scenario_paths, scenario_from_dict
+from groundsim.world.scenario import load_scenario, reference_scenario_paths, scenario_digest, scenario_from_dict
 from onboard.core.errors import ConfigError
 from tests.groundsim.campaign_helpers import (
     campaign_cmd,
@@ -281,6 +283,51 @@ def test_score_track_figures_on_a_constructed_track():
 
 
 # --------------------------------------------------------------------------- the log and resumability
+
+
+def _t2_row(**over) -> dict:
+    row = {
+        "status": "ok",
+        "algorithm": "map",
+        "scenario": "P1",
+        "noise": "RTK",
+        "range_scale": 1.0,
+        "aspect_deg": 0.0,
+        "manoeuvre_scale": 1.0,
+        "duration_s": None,
+        "scenario_digest": scenario_digest(reference_scenario_paths()["P1"]),
+        "err_range_published_settled_pct": 1.0,
+        "beyond_3sigma_published": 0.0,
+    }
+    row.update(over)
+    return row
+
+
+@pytest.mark.parametrize(
+    "over",
+    [
+        {"manoeuvre_scale": 2.0},  # no run at the reference geometry: medians over other geometries
+        {"noise": "exact"},  # not a noise case of the reference study
+        {"duration_s": 2.0},  # not the paper's 300 frames
+        {"scenario": "C1"},  # not one of the paper's scenarios
+        {"scenario_digest": "another file"},  # a file named P1 that says something else
+    ],
+)
+def test_the_paper_figure_stands_only_beside_the_runs_it_applies_to(tmp_path, over):
+    """The paper's Table 2 figure is given beside its own scenarios, as shipped, at the reference geometry, flown
+    whole, under a reference noise case; '-' elsewhere, and the report's note says so (0.89 % had stood beside P1
+    at twice the manoeuvre, without noise, on 2 s flights)."""
+    shipped = {"P1": scenario_digest(reference_scenario_paths()["P1"])}
+    (ref,), _ = table2_rows([_t2_row()], shipped)
+    assert ref["paper_pct"] == pytest.approx(0.89)
+    (other,), _ = table2_rows([_t2_row(**over)], shipped)
+    assert math.isnan(other["paper_pct"])
+    info = {"planned": 1, "reused": 0, "ran": 1, "failed": 0, "wall_s": 1.0, "workers": 1, "interrupted": False}
+    write_report(tmp_path, _spec(tmp_path), [_t2_row(**over)], info)
+    text = (tmp_path / REPORT_NAME).read_text()
+    line = next(x for x in text.splitlines() if x.startswith(f"| {over.get('scenario', 'P1')} |"))
+    assert line.split("|")[4].strip() == "-", line
+    assert "'-' elsewhere, where the paper has no figure" in text
 
 
 def test_confident_wrong_rows_count_the_observable_frames_beyond_3_sigma_per_group():
