@@ -9,6 +9,7 @@ single_thread_blas_env()
 import sys  # noqa: E402
 
 from groundsim.app.cli import main  # noqa: E402
+from groundsim.io.stop_signals import settle_exit  # noqa: E402
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(settle_exit(main()))

@@ -107,7 +107,7 @@ from groundsim.evaluation.parallel import (
     start_pool,
     stop_pool,
 )
-from groundsim.io.stop_signals import finish_despite_signals, signals_held, sigterm_as_ctrl_c
+from groundsim.io.stop_signals import finish_despite_signals, first_signal_stops, signals_held
 from groundsim.world.noise_cases import NoiseCase, load_noise_cases
 from groundsim.world.scenario import Scenario, load_scenario, scenario_digest
 from onboard.core.errors import ConfigError
@@ -1026,7 +1026,9 @@ def cmd_campaign(args) -> int:
     Ctrl-C or SIGTERM: the runs done are kept and in the table, the interrupted line, exit 130."""
     from groundsim.evaluation.eval import DEFAULT_ONBOARD_CONFIG, load_base_config
 
-    with quiet_run_logs("groundsim.evaluation.eval"), sigterm_as_ctrl_c():
+    # the first SIGTERM, or Ctrl-C, stops it cleanly; a later one cannot cut that stop short, even one arriving as the
+    # first is caught.  SIGINT ignored on entry (started with & by a non-interactive shell) stays ignored
+    with quiet_run_logs("groundsim.evaluation.eval"), first_signal_stops("the table and the report"):
         spec = load_spec(args.spec)
         scheduler = getattr(args, "scheduler", None)
         if scheduler is not None:  # before --out is made

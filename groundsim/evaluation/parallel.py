@@ -209,6 +209,8 @@ def start_pool(workers: int, preload: tuple[str, ...] = DEFAULT_PRELOAD, progres
     import threading
     import time
 
+    from groundsim.io.stop_signals import redeliver
+
     ctx = mp_context(preload)
     pool = None
     # Ctrl-C while the pool starts is held until every worker has started (init_worker's 0 on the queue), then
@@ -222,7 +224,9 @@ def start_pool(workers: int, preload: tuple[str, ...] = DEFAULT_PRELOAD, progres
     # Ctrl-C, groundsim.io.stop_signals.sigterm_as_ctrl_c), then handed to that handler.
     held: list[int] = []
     main = threading.current_thread() is threading.main_thread()
-    previous = signal.signal(signal.SIGINT, lambda signum, frame: held.append(signum)) if main else None
+    # SIGINT ignored (a command started in the background by a non-interactive shell) stays ignored
+    take_int = main and signal.getsignal(signal.SIGINT) is not signal.SIG_IGN
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: held.append(signum)) if take_int else None
     term = signal.getsignal(signal.SIGTERM) if main else None
     if not callable(term):  # the default (the process ends) or ignored: left as it is
         term = None
@@ -243,14 +247,12 @@ def start_pool(workers: int, preload: tuple[str, ...] = DEFAULT_PRELOAD, progres
                 except queue_mod.Empty:
                     pass
         finally:
-            if main:  # None: a handler installed outside Python; Python's own is the nearest honest one
+            if take_int:  # None: a handler installed outside Python; Python's own is the nearest honest one
                 signal.signal(signal.SIGINT, previous if previous is not None else signal.default_int_handler)
             if term is not None:
                 signal.signal(signal.SIGTERM, term)
-        if signal.SIGINT in held:
-            raise KeyboardInterrupt
-        if signal.SIGTERM in held:
-            signal.raise_signal(signal.SIGTERM)  # to its handler, now back
+        if held:  # to its handler, now back (a command's first_signal_stops then knows it was asked to stop)
+            redeliver(held[0])
     except BaseException:
         if pool is not None:
             stop_pool(pool)

@@ -7,7 +7,13 @@ checks, instead of raising wherever the loop happens to be; when SIGINT ended it
 The evaluation's commands (eval, dataset, campaign) stop by KeyboardInterrupt instead: their work is in pools
 and generators that Ctrl-C unwinds.  :func:`sigterm_as_ctrl_c` makes SIGTERM (a service manager's stop, ``kill``,
 a CI job's time limit) take that path too, and :func:`finish_despite_signals` holds both signals while the work
-that is done is written.
+that is done is written.  :func:`first_signal_stops` does both at once: the first signal raises, every later one
+is only noted, so a second one cannot land between the first's KeyboardInterrupt and the command's finishing.
+
+SIGINT ignored when the process started (what a non-interactive shell does to a command run with ``&``, so that
+Ctrl-C at the terminal is not its business) stays ignored: :func:`finish_despite_signals`, :func:`signals_held`
+and :func:`first_signal_stops` leave it so, SIGTERM is taken whatever its inherited handler.  A command ended by
+a signal settles its exit code with :func:`settle_exit`.
 """
 
 from __future__ import annotations
@@ -26,6 +32,9 @@ __all__ = [
     "finish_despite_signals",
     "signals_held",
     "sigterm_as_ctrl_c",
+    "first_signal_stops",
+    "redeliver",
+    "settle_exit",
 ]
 
 log = logging.getLogger(__name__)
@@ -33,11 +42,23 @@ log = logging.getLogger(__name__)
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, what a shell reports for a command Ctrl-C ended
 
 
+def _ignored(sig: int) -> bool:
+    """Whether ``sig`` is ignored (SIGINT: as a non-interactive shell starts a background command)."""
+    try:
+        return signal.getsignal(sig) is signal.SIG_IGN
+    except ValueError:
+        return False
+
+
 def install_stop_signals(
-    stop: threading.Event, received: list[int] | None = None, on_first: Callable[[str], object] | None = None
+    stop: threading.Event,
+    received: list[int] | None = None,
+    on_first: Callable[[str], object] | None = None,
+    keep_ignored: bool = False,
 ):
     """SIGINT/SIGTERM set ``stop`` and append their number to ``received``; the first one is announced by
-    ``on_first(signal name)`` (default: an INFO log line).  Returns a function restoring the old handlers."""
+    ``on_first(signal name)`` (default: an INFO log line).  ``keep_ignored``: a signal ignored now stays ignored.
+    Returns a function restoring the old handlers."""
     old = {}
 
     def on_signal(signum, _frame):
@@ -52,6 +73,8 @@ def install_stop_signals(
         stop.set()
 
     for sig in (signal.SIGINT, signal.SIGTERM):
+        if keep_ignored and _ignored(sig):
+            continue
         try:
             old[sig] = signal.signal(sig, on_signal)
         except ValueError:  # not the main thread (embedded use): the caller owns stopping
@@ -77,7 +100,10 @@ def finish_despite_signals(what: str = "the report") -> Iterator[list[int]]:
     The first is announced as a warning, ``<SIGNAL>: writing <what> first``."""
     received: list[int] = []
     restore = install_stop_signals(
-        threading.Event(), received, on_first=lambda name: log.warning("%s: writing %s first", name, what)
+        threading.Event(),
+        received,
+        on_first=lambda name: log.warning("%s: writing %s first", name, what),
+        keep_ignored=True,
     )
     try:
         yield received
@@ -90,15 +116,30 @@ def signals_held() -> Iterator[None]:
     """While the block runs, SIGINT and SIGTERM wait: one received in it raises KeyboardInterrupt as the block
     ends (unless the block raised).  For a short step that must happen whole or not at all, such as a result
     written to a log and counted: a Ctrl-C between the two had the command report fewer runs done than its log
-    holds."""
+    holds.  The signal is handed to the handler in place after the block when that is a Python one (a command's
+    :func:`first_signal_stops` then knows it has been asked to stop), else raised as KeyboardInterrupt."""
     received: list[int] = []
-    restore = install_stop_signals(threading.Event(), received, on_first=lambda _name: None)
+    restore = install_stop_signals(threading.Event(), received, on_first=lambda _name: None, keep_ignored=True)
     try:
         yield
     finally:
         restore()
     if received:
-        raise KeyboardInterrupt
+        redeliver(received[0])
+
+
+def redeliver(sig: int) -> None:
+    """Hand ``sig``, held while another handler was in place, to the handler in place now when that is a Python
+    one (it raises, or only notes it: :func:`first_signal_stops` after its first); otherwise (the default, which
+    would end the process, or not the main thread) raise KeyboardInterrupt, as a held signal always did."""
+    try:
+        handler = signal.getsignal(sig)
+    except ValueError:
+        handler = None
+    if callable(handler):
+        signal.raise_signal(sig)
+        return
+    raise KeyboardInterrupt
 
 
 @contextlib.contextmanager
@@ -116,3 +157,49 @@ def sigterm_as_ctrl_c() -> Iterator[None]:
         yield
     finally:
         signal.signal(signal.SIGTERM, old)
+
+
+@contextlib.contextmanager
+def first_signal_stops(what: str) -> Iterator[list[int]]:
+    """While the block runs, the first SIGTERM, or SIGINT unless it was ignored on entry, raises KeyboardInterrupt
+    (Ctrl-C's clean stop, and SIGTERM's as :func:`sigterm_as_ctrl_c`); every later one is appended to the list it
+    yields, the first of them announced as a warning, ``<SIGNAL>: stopping already; writing <what> first``, and not
+    raised.  Two quick signals had the second land while the first was being caught, before the command's
+    :func:`finish_despite_signals` took over, and end the command without writing ``what``.  Outside the main thread
+    nothing changes: the caller owns stopping."""
+    received: list[int] = []
+
+    def on_signal(signum, _frame):
+        received.append(signum)
+        if len(received) == 1:
+            raise KeyboardInterrupt
+        if len(received) == 2:
+            log.warning("%s: stopping already; writing %s first", signal.Signals(signum).name, what)
+
+    old = {}
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        if sig == signal.SIGINT and _ignored(sig):
+            continue
+        try:
+            old[sig] = signal.signal(sig, on_signal)
+        except ValueError:
+            break
+    try:
+        yield received
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+
+
+def settle_exit(code: int) -> int:
+    """``code``, the process's exit code; when it is :data:`EXIT_INTERRUPTED` (the command stopped on a signal and
+    said so) SIGINT and SIGTERM are ignored from here to the process's end: a repeated one while Python exits (the
+    pool's and the fork server's finalizers take a moment) had ended the process as killed by it (exit 143), its
+    files written and its interrupted line printed.  For entry points only (``__main__``)."""
+    if code == EXIT_INTERRUPTED:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            try:
+                signal.signal(sig, signal.SIG_IGN)
+            except ValueError:
+                pass
+    return code

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import signal
 import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -178,3 +179,96 @@ def test_sigterm_stops_a_campaign_as_ctrl_c_does(tmp_path):
         assert "Traceback" not in stderr and "leaked semaphore" not in stderr, stderr[-3000:]
     finally:
         kill_all([proc.pid, *pool])
+
+
+def test_two_quick_sigterms_still_write_the_table_and_the_report(tmp_path, monkeypatch, capsys):
+    """The second of two quick SIGTERMs landing as the first is caught, before the finishing holds the signals: it
+    is noted, not raised, so the table and the report are written and the interrupted line counts the logged runs
+    (it had escaped the campaign: "interrupted: nothing written", no table; measured with two kill -TERM a
+    moment apart to a 2-worker campaign)."""
+    import groundsim.evaluation.campaign as campaign
+
+    run_job, finishing = campaign.run_job, campaign.finish_despite_signals
+    started = []
+
+    def first_sigterm(job):
+        started.append(job)
+        if len(started) == 2:
+            signal.raise_signal(signal.SIGTERM)
+        return run_job(job)
+
+    def second_sigterm_first(*args, **kwargs):
+        signal.raise_signal(signal.SIGTERM)
+        return finishing(*args, **kwargs)
+
+    monkeypatch.setattr(campaign, "run_job", first_sigterm)
+    monkeypatch.setattr(campaign, "finish_despite_signals", second_sigterm_first)
+    before = signal.getsignal(signal.SIGTERM)
+    out = tmp_path / "out"
+    rc = cli_main(["campaign", str(_spec_file(tmp_path)), "--out", str(out), "--workers", "1", "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == EXIT_INTERRUPTED, err
+    logged = len(read_log(out / LOG_NAME)[0])
+    assert logged == 2 and len(pd.read_csv(out / TABLE_NAME)) == logged and (out / REPORT_NAME).is_file()
+    lines = [line for line in err.splitlines() if line.startswith("interrupted:")]
+    assert lines == [f"interrupted: {logged} of 4 runs done; the same command resumes"], err
+    assert signal.getsignal(signal.SIGTERM) is before
+
+
+def test_a_stop_signal_while_python_exits_after_the_interrupted_line_keeps_its_exit_code():
+    """``python -m groundsim`` ending on a signal (exit 130, its files written, its line printed) ignores a repeated
+    one while Python exits (a pool's finalizers): it had ended killed by SIGTERM (143) after the line."""
+    code = (
+        "import atexit, os, runpy, signal\n"
+        "import groundsim.app.cli as cli\n"
+        "cli.main = lambda argv=None: 130\n"
+        "atexit.register(lambda: os.kill(os.getpid(), signal.SIGTERM))\n"
+        "runpy.run_module('groundsim', run_name='__main__')\n"
+    )
+    res = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert res.returncode == EXIT_INTERRUPTED, (res.returncode, res.stderr[-2000:])
+
+
+@pytest.fixture
+def sigint_ignored():
+    """SIGINT ignored, as a non-interactive shell starts a command with ``&``."""
+    before = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, before)
+
+
+def test_sigint_ignored_on_entry_stays_ignored_and_sigterm_still_stops(sigint_ignored):
+    """A command started in the background (SIGINT ignored) is not stopped by SIGINT, not even while a result is
+    logged or the report written (signals_held had raised KeyboardInterrupt for it, stopping a campaign that ignored
+    it otherwise); SIGTERM stops it as always; SIGINT is still ignored after."""
+    from groundsim.io.stop_signals import finish_despite_signals, first_signal_stops, signals_held
+
+    with signals_held():
+        signal.raise_signal(signal.SIGINT)
+    with finish_despite_signals() as received:
+        signal.raise_signal(signal.SIGINT)
+    assert received == []
+    with pytest.raises(KeyboardInterrupt):
+        with first_signal_stops("the report") as received:
+            signal.raise_signal(signal.SIGINT)
+            signal.raise_signal(signal.SIGTERM)
+    assert received == [signal.SIGTERM]
+    assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+
+
+def test_after_the_first_signal_the_others_are_noted_not_raised():
+    """first_signal_stops: the first signal raises KeyboardInterrupt, the next ones (either) are noted; the handlers
+    before the block are back after it."""
+    from groundsim.io.stop_signals import first_signal_stops
+
+    before = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+    with first_signal_stops("the report") as received:
+        try:
+            signal.raise_signal(signal.SIGTERM)
+        except KeyboardInterrupt:
+            signal.raise_signal(signal.SIGTERM)
+            signal.raise_signal(signal.SIGINT)
+    assert received == [signal.SIGTERM, signal.SIGTERM, signal.SIGINT]
+    assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before
