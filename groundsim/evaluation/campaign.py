@@ -43,7 +43,10 @@ digest of what its file says (:func:`~groundsim.world.scenario.scenario_digest`:
 noise model, the onboard configuration's digest, :data:`RESULT_SCHEMA`).  Each finished run is appended
 to ``OUT/runs.jsonl`` as one line, flushed and fsynced, the moment its result arrives; a new invocation
 reads it (a line cut short by a kill, damaged, or not a run's row is skipped, one warning names the
-lines, and their runs are redone) and runs only what is missing.  ``runs.csv`` (and
+lines, and their runs are redone) and runs only what is missing.  A folder holds one campaign (its name, recorded in
+``OUT/campaign.json``): another campaign's is refused before anything is written (:func:`check_same_campaign`),
+unless ``--fresh``.  The log and that record are :mod:`groundsim.evaluation.campaign_log`; a run's identity,
+figures and job :mod:`groundsim.evaluation.campaign_runs`.  ``runs.csv`` (and
 ``runs.parquet`` when pyarrow is installed), ``report.md`` and ``manoeuvre.png`` are rebuilt from the
 log every time, in the spec's order, so the table does not depend on the order runs finished in, nor
 on interruptions.
