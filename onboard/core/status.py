@@ -261,7 +261,15 @@ STATUS_JSON_KEYS: tuple[tuple[str, dict[str, Any]], ...] = (
     ("publish_ms", _SUMMARY_OR_NULL),
     ("stages_ms", {"type": ["object", "null"], "additionalProperties": _SUMMARY}),
     ("capture_to_track_ms", _SUMMARY_OR_NULL),
-    ("rejected", {"type": "object", "additionalProperties": {"type": "integer"}, "description": "count by reason"}),
+    (
+        "rejected",
+        {
+            "type": "object",
+            "additionalProperties": {"type": "integer"},
+            "description": "count by reason of every input refused, and of the events counted with them though the "
+            "input was taken (pose_extrapolated, frame_time_reset, ...: frames.rejected sums only the refusals)",
+        },
+    ),
     ("link", _LINK),
     (
         "cpu",
