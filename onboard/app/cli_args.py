@@ -12,13 +12,17 @@ from __future__ import annotations
 import argparse
 import contextlib
 import math
+import os
 import re
 import signal
+import sys
 from collections.abc import Callable, Iterable, Iterator
 from typing import Any, NoReturn
 
 __all__ = [
     "EXIT_USAGE",
+    "EXIT_READER_LEFT",
+    "exit_code_of",
     "OneLineParser",
     "add_config_option",
     "add_live_view_option",
@@ -33,6 +37,22 @@ __all__ = [
 ]
 
 EXIT_USAGE = 2  # argparse's own exit code for a usage mistake
+EXIT_READER_LEFT = 141  # 128 + SIGPIPE: what a shell reports for a command whose output's reader went away
+
+
+def exit_code_of(main: Callable[[], int]) -> int:
+    """``main()``'s exit code, for an entry point's ``__main__``; :data:`EXIT_READER_LEFT` without a traceback when
+    the reader of standard output went away (``... | head``): Python ignores SIGPIPE, so the next write raised
+    BrokenPipeError wherever it was, and the exit's flush said so again.  What the command wrote to files before
+    (a campaign's log of finished runs) stays; what it would still have printed goes nowhere."""
+    try:
+        code = main()
+        sys.stdout.flush()  # here, not at exit: a reader gone after the last print is this error too
+        return code
+    except BrokenPipeError:
+        with contextlib.suppress(OSError):
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return EXIT_READER_LEFT
 
 
 class OneLineParser(argparse.ArgumentParser):

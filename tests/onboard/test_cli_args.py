@@ -53,3 +53,24 @@ def test_overrides_parse_each_set_and_an_option_wins_over_a_set_of_its_field():
 def test_a_set_of_a_field_that_does_not_exist_names_it():
     with pytest.raises(OnboardConfigError, match="estimator.windw_s"):
         config_overrides(["estimator.windw_s=3"])
+
+
+@pytest.mark.parametrize("wrapped", [False, True])
+def test_a_reader_that_leaves_ends_the_command_quietly_with_141(wrapped):
+    """``groundsim campaign ... | head -1`` ended with a BrokenPipeError traceback: Python ignores SIGPIPE, so the
+    next print raised wherever it was (and the exit's flush said so again)."""
+    import subprocess
+    import sys
+
+    main = "lambda: [print('line', i, flush=True) for i in range(200_000)] and 0"
+    code = f"import sys; from onboard.app.cli_args import exit_code_of; sys.exit(exit_code_of({main}))"
+    if not wrapped:
+        code = f"import sys; sys.exit(({main})())"
+    writer = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    assert writer.stdout is not None and writer.stdout.readline() == b"line 0\n"
+    writer.stdout.close()  # the reader leaves, as head does after its first line
+    _out, err = writer.communicate(timeout=60)
+    if wrapped:
+        assert (writer.returncode, err) == (141, b"")
+    else:  # what an entry point without it does
+        assert writer.returncode == 1 and b"BrokenPipeError" in err
