@@ -21,7 +21,7 @@ from groundsim.evaluation.out_dir import make_out_dir, refuse_foreign_out
 from groundsim.evaluation.parallel import check_run_timeout, limit_blas_threads, pool_workers, quiet_run_logs
 from groundsim.evaluation.report import SCHEMA, holds_eval_report
 from groundsim.evaluation.scoring import format_gnss_dropout
-from groundsim.io.stop_signals import finish_despite_signals, print_interrupted, sigterm_as_ctrl_c
+from groundsim.io.stop_signals import finish_despite_signals, first_signal_stops, print_interrupted
 from groundsim.world.nav_errors import InjectedErrors
 from groundsim.world.scenario import DEFAULT_NAV_NOISE, refuse_duplicate_scenarios
 from onboard.core.errors import ConfigError
@@ -126,7 +126,8 @@ def cmd_eval(args) -> int:
     from groundsim.world.sim import check_duration_s
 
     limit_blas_threads(1)
-    with quiet_run_logs(), sigterm_as_ctrl_c():  # per-track chatter would drown the progress bar
+    # per-track chatter would drown the progress bar; a second stop signal must not cut the report short
+    with quiet_run_logs(), first_signal_stops("the report"):
         names = [n for group in (args.scenario or [list(DEFAULT_EVAL_SCENARIOS)]) for n in group]
         paths = [resolve_scenario_path(n) for n in names]
         scenarios = [load_scenario(p) for p in paths]

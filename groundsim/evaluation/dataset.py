@@ -120,7 +120,7 @@ from groundsim.evaluation.parallel import (
     report_progress,
     run_jobs,
 )
-from groundsim.io.stop_signals import finish_despite_signals, print_interrupted, sigterm_as_ctrl_c
+from groundsim.io.stop_signals import finish_despite_signals, first_signal_stops, print_interrupted
 from onboard.core.errors import ConfigError, InputError
 
 __all__ = [
@@ -871,7 +871,7 @@ def cmd_dataset(args) -> int:
     interrupted line names the sequences written and those not finished, exit 130."""
     from groundsim.world.scenario import load_scenario, refuse_duplicate_scenarios, resolve_scenario_path
 
-    with quiet_run_logs("groundsim.world.truth"), sigterm_as_ctrl_c():
+    with quiet_run_logs("groundsim.world.truth"), first_signal_stops("the sequences finished"):
         names = [n for group in (args.scenario or [["P1"]]) for n in group]
         paths = [resolve_scenario_path(n) for n in names]
         scenarios = [load_scenario(p) for p in paths]

@@ -221,7 +221,7 @@ def start_pool(workers: int, preload: tuple[str, ...] = DEFAULT_PRELOAD, progres
     # it in the main thread all the same.  signal.signal works in the main thread only; elsewhere the caller
     # owns Ctrl-C.
     # SIGTERM is held the same way while a Python handler takes it (a command that stops on SIGTERM as on
-    # Ctrl-C, groundsim.io.stop_signals.sigterm_as_ctrl_c), then handed to that handler.
+    # Ctrl-C, groundsim.io.stop_signals.first_signal_stops), then handed to that handler.
     held: list[int] = []
     main = threading.current_thread() is threading.main_thread()
     # SIGINT ignored (a command started in the background by a non-interactive shell) stays ignored

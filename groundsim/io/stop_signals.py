@@ -5,10 +5,10 @@ checks, instead of raising wherever the loop happens to be; when SIGINT ended it
 :func:`print_interrupted`'s line, ``interrupted: <what was kept>``, and exits :data:`EXIT_INTERRUPTED`.
 
 The evaluation's commands (eval, dataset, campaign) stop by KeyboardInterrupt instead: their work is in pools
-and generators that Ctrl-C unwinds.  :func:`sigterm_as_ctrl_c` makes SIGTERM (a service manager's stop, ``kill``,
-a CI job's time limit) take that path too, and :func:`finish_despite_signals` holds both signals while the work
-that is done is written.  :func:`first_signal_stops` does both at once: the first signal raises, every later one
-is only noted, so a second one cannot land between the first's KeyboardInterrupt and the command's finishing.
+and generators that Ctrl-C unwinds.  :func:`first_signal_stops` makes SIGTERM (a service manager's stop, ``kill``,
+a CI job's time limit) take that path too, its first signal raising and every later one only noted, so a second
+one cannot land between the first's KeyboardInterrupt and the command's finishing; :func:`finish_despite_signals`
+holds both signals while the work that is done is written.
 
 SIGINT ignored when the process started (what a non-interactive shell does to a command run with ``&``, so that
 Ctrl-C at the terminal is not its business) stays ignored: :func:`finish_despite_signals`, :func:`signals_held`
@@ -31,7 +31,6 @@ __all__ = [
     "print_interrupted",
     "finish_despite_signals",
     "signals_held",
-    "sigterm_as_ctrl_c",
     "first_signal_stops",
     "redeliver",
     "settle_exit",
@@ -143,26 +142,10 @@ def redeliver(sig: int) -> None:
 
 
 @contextlib.contextmanager
-def sigterm_as_ctrl_c() -> Iterator[None]:
-    """While the block runs, SIGTERM raises KeyboardInterrupt, as Ctrl-C does: a command that stops cleanly on
-    Ctrl-C (its pool ended, the finished work kept, the interrupted line) stops so on SIGTERM too, where Python's
-    default would end the process at once (its pool's workers left running, the files of the work done so far not
-    written).  Outside the main thread (embedded use) nothing changes: the caller owns stopping."""
-    try:
-        old = signal.signal(signal.SIGTERM, signal.default_int_handler)
-    except ValueError:
-        yield
-        return
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, old)
-
-
-@contextlib.contextmanager
 def first_signal_stops(what: str) -> Iterator[list[int]]:
     """While the block runs, the first SIGTERM, or SIGINT unless it was ignored on entry, raises KeyboardInterrupt
-    (Ctrl-C's clean stop, and SIGTERM's as :func:`sigterm_as_ctrl_c`); every later one is appended to the list it
+    (Ctrl-C's clean stop: SIGTERM takes it too, where Python's default would end the process at once, its pool's
+    workers left running and the files of the work done so far not written); every later one is appended to the list it
     yields, the first of them announced as a warning, ``<SIGNAL>: stopping already; writing <what> first``, and not
     raised.  Two quick signals had the second land while the first was being caught, before the command's
     :func:`finish_despite_signals` took over, and end the command without writing ``what``.  Outside the main thread
