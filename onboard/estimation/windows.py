@@ -91,7 +91,11 @@ def plan_windows(t_s: np.ndarray, window_s: float, min_rows: int) -> list[Window
         owner_bounds = a + np.searchsorted(t[a:b], (middles[:-1] + middles[1:]) / 2.0, side="right")
         take_bounds = [a, *owner_bounds.tolist(), b]
         firsts = a + np.searchsorted(t[a:b], np.asarray(starts), side="left")
-        stops = a + np.searchsorted(t[a:b], np.asarray(starts) + window_s, side="right")
+        # the last window ends at the stretch's last row itself: its start plus window_s, (t1 - window_s) + window_s,
+        # can round an ulp below t1 and leave out the very row it takes
+        ends = np.asarray(starts) + window_s
+        ends[-1] = t1
+        stops = a + np.searchsorted(t[a:b], ends, side="right")
         for k, start in enumerate(starts):
             take_first, take_stop = take_bounds[k], take_bounds[k + 1]
             if take_stop <= take_first:
@@ -99,11 +103,11 @@ def plan_windows(t_s: np.ndarray, window_s: float, min_rows: int) -> list[Window
             first, stop = int(firsts[k]), int(stops[k])
             if stop - first < min_rows:
                 raise WindowingError(
-                    f"{stop - first} row(s) at t_s {start:.3f}..{start + window_s:.3f} s, one of the {window_s:g} s"
+                    f"{stop - first} row(s) at t_s {start:.3f}..{ends[k]:.3f} s, one of the {window_s:g} s"
                     f" windows a long span is solved in; each needs at least {min_rows} rows (longer windows take in"
                     " more)"
                 )
-            windows.append(Window(first, stop, int(take_first), int(take_stop), start, start + window_s))
+            windows.append(Window(first, stop, int(take_first), int(take_stop), start, float(ends[k])))
     return windows
 
 
