@@ -630,19 +630,22 @@ def test_bad_state_is_an_input_error_naming_the_field(link, field, value):
 
 
 @pytest.mark.parametrize(
-    "kw",
+    "kw, expected",
     [
-        dict(att_rate_hz=0),
-        dict(pos_rate_hz=-1),
-        dict(sysid=0),
-        dict(compid=256),
-        dict(att_rate_hz=float("nan")),
-        dict(gimbal_yaw_frame="body"),
+        (dict(att_rate_hz=0), "must be in (0, 1000] Hz, got 0"),
+        (dict(pos_rate_hz=-1), "must be in (0, 1000] Hz, got -1"),
+        (dict(sysid=0), "must be an integer in [1, 255], got 0"),
+        (dict(compid=256), "must be an integer in [1, 255], got 256"),
+        (dict(att_rate_hz=float("nan")), "must be in (0, 1000] Hz, got nan"),
+        (dict(gimbal_yaw_frame="body"), "must be 'earth' or 'vehicle', got 'body'"),
     ],
+    ids=["att_rate_0", "pos_rate_negative", "sysid_0", "compid_256", "att_rate_nan", "gimbal_yaw_frame_body"],
 )
-def test_bad_options(kw):
-    with pytest.raises(MavlinkConfigError):
+def test_bad_options(kw, expected):
+    (field,) = kw
+    with pytest.raises(MavlinkConfigError) as e:
         MavlinkVehicle("udpout:127.0.0.1:9", **kw)
+    assert str(e.value) == f"MavlinkVehicle.{field} {expected}"
 
 
 @pytest.mark.integration

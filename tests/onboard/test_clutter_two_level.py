@@ -159,10 +159,19 @@ def test_no_cap_for_a_float_frame_or_when_switched_off():
 
 
 @pytest.mark.parametrize(
-    "kwargs", [{"two_level_cap_lsb": 0.5}, {"two_level_cap_lsb": -1.0}, {"two_level_fraction": 0.0}]
+    "kwargs, message",
+    [
+        (
+            {"two_level_cap_lsb": 0.5},
+            r"^ClutterParams\.two_level_cap_lsb must be 0 \(no cap\) or >= min_threshold_lsb \(0\.8\), got 0\.5$",
+        ),
+        ({"two_level_cap_lsb": -1.0}, r"^ClutterParams\.two_level_cap_lsb must be 0 \(no cap\) or >= .*, got -1\.0$"),
+        ({"two_level_fraction": 0.0}, r"^ClutterParams\.two_level_fraction must be in \(0, 1\], got 0\.0$"),
+    ],
+    ids=["cap_0.5", "cap_negative", "fraction_0"],
 )
-def test_clutter_params_refuse_a_cap_under_the_floor(kwargs):
-    with pytest.raises(ValueError):
+def test_clutter_params_refuse_a_cap_under_the_floor(kwargs, message):
+    with pytest.raises(ValueError, match=message):
         ClutterParams(**kwargs)
 
 

@@ -135,9 +135,9 @@ def test_unsteady_evidence_is_the_best_models_lead_over_the_best_stiffest_one():
 
 
 def test_invalid_settings_are_refused():
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match=r"^ManoeuvreDetector: invalid reference 1\.0, "):
         ManoeuvreDetector(reference=1.0)
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match=r"^SelectionHistory: invalid nsigma 0\.0 "):
         SelectionHistory(nsigma=0.0)
 
 

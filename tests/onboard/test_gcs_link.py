@@ -343,11 +343,20 @@ def test_udpout_sends_to_its_address_whoever_else_speaks():
 
 
 @pytest.mark.parametrize(
-    "kw", [dict(peer_timeout_s=0.0), dict(peer_timeout_s=True), dict(max_peers=0), dict(max_peers=2.0)]
+    "kw, expected",
+    [
+        (dict(peer_timeout_s=0.0), "expected seconds > 0, got 0.0"),
+        (dict(peer_timeout_s=True), "expected seconds > 0, got True"),  # a bool is not a number of seconds
+        (dict(max_peers=0), "expected an integer >= 1, got 0"),
+        (dict(max_peers=2.0), "expected an integer >= 1, got 2.0"),
+    ],
+    ids=["peer_timeout_0", "peer_timeout_bool", "max_peers_0", "max_peers_float"],
 )
-def test_bad_peer_settings_are_refused(kw):
-    with pytest.raises(ConfigError):
+def test_bad_peer_settings_are_refused(kw, expected):
+    (field,) = kw
+    with pytest.raises(ConfigError) as e:
         GcsLink(["udpout:127.0.0.1:9"], 100, **kw)
+    assert str(e.value) == f"GcsLink.{field}: {expected}"
 
 
 # --------------------------------------------------------------------------- MAVLink 2 signing

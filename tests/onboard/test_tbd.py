@@ -184,18 +184,25 @@ def test_velocity_bank_is_a_square_grid_with_zero():
 
 
 @pytest.mark.parametrize(
-    "kwargs",
+    "kwargs, message",
     [
-        dict(gain=0.0),
-        dict(gain=1.5),
-        dict(decimation=0),
-        dict(max_speed_pxpf=0.3, speed_step_pxpf=0.0),
-        dict(roi_px=4),
-        dict(threshold_sigma=3.0, track_threshold_sigma=4.0),
+        (dict(gain=0.0), r"^TbdParams gain in \(0, 1\], got 0\.0$"),
+        (dict(gain=1.5), r"^TbdParams gain in \(0, 1\], got 1\.5$"),
+        (dict(decimation=0), r"^TbdParams decimation >= 1, .* got 0, "),
+        (
+            dict(max_speed_pxpf=0.3, speed_step_pxpf=0.0),
+            r"^TbdParams max_speed_pxpf >= 0 and speed_step_pxpf > 0, got 0\.3, 0\.0$",
+        ),
+        (dict(roi_px=4), r"^TbdParams confirm_frames >= 1 and roi_px >= 8 cells, got \d+, 4$"),
+        (
+            dict(threshold_sigma=3.0, track_threshold_sigma=4.0),
+            r"^TbdParams 0 < track_threshold_sigma <= threshold_sigma, got 4\.0, 3\.0$",
+        ),
     ],
+    ids=["gain_0", "gain_1.5", "decimation_0", "speed_step_0", "roi_px_4", "track_threshold_over"],
 )
-def test_tbd_params_refuse_nonsense(kwargs):
-    with pytest.raises(InputError):
+def test_tbd_params_refuse_nonsense(kwargs, message):
+    with pytest.raises(InputError, match=message):
         TbdParams(**kwargs)
 
 

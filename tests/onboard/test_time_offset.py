@@ -211,11 +211,13 @@ def test_outlier_block_is_refused():
 
 def test_refuses_non_finite_and_bad_params():
     est = TimeOffsetEstimator()
-    with pytest.raises(InputError):
+    with pytest.raises(InputError, match=r"^TimeOffsetEstimator\.add: non-finite time, bearing or pose$"):
         est.add(float("nan"), [0, 0, 1], [1, 0, 0, 0], [0, 0, 0], [0, 0, 0], 100.0)
-    with pytest.raises(InputError):
+    with pytest.raises(InputError, match=r"^TimeOffsetParams\.block_s must be a positive number, got 0\.0$"):
         TimeOffsetParams(block_s=0.0)
-    with pytest.raises(InputError):
+    with pytest.raises(
+        InputError, match=r"^TimeOffsetParams\.rate_span_s \(1\.5\) must be under half of block_s \(2\.0\)$"
+    ):
         TimeOffsetParams(rate_span_s=1.5, block_s=2.0)
 
 
