@@ -655,14 +655,20 @@ def test_flat_frames_never_break_a_track(value, dtype):
     assert o.state == TrackState.TRACKING and o.track_id == 2
 
 
-def test_random_garbage_frames_do_not_raise():
+def test_random_garbage_frames_do_not_raise_and_start_no_track():
     rng = np.random.default_rng(30)
     tr = TargetTracker()
+    outs = []
     for dtype in (np.uint8, np.uint16):
         for _ in range(3):
             img = rng.integers(0, np.iinfo(dtype).max, size=(H_PX, W_PX), endpoint=True).astype(dtype)
-            o = tr.update(img)
-            assert isinstance(o, TrackUpdate)
+            outs.append(tr.update(img))
+    # uniform noise over the whole range holds no target: every frame taken (none refused), searched, and nothing
+    # measured or confirmed
+    assert [(o.state, o.track_id, o.measurement_valid, o.u_px, o.frame_index) for o in outs] == [
+        (TrackState.SEARCHING, None, False, None, k) for k in range(6)
+    ]
+    assert tr.rejected_frames == 0
 
 
 def test_frame_size_change_ends_the_track():
