@@ -145,8 +145,8 @@ WITHIN_LIMITS_STATUSES = {"advise", "observable", "no_gain", "no_feasible"}
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(
     # the observer inside the default altitude band (20 to 150 m) and, below, its speed and climb limits; the target
-    # 20 to 400 m away: drawn as box corners, nine in ten cases were the observer outside its limits (at 0 m, or
-    # faster than max_speed) or the target at the camera (hypothesis's favourite 0.0), all returning before a check
+    # 20 to 400 m away. Drawn from boxes around them, most cases were an observer outside its limits (at 0 m, or
+    # faster than max_speed) or a target at the camera (hypothesis favours 0.0): no advice, so no limit was checked
     alt_m=st.floats(20.0, 150.0, **_finite),
     speed_frac=st.floats(0.0, 1.0, **_finite),
     heading=st.floats(-math.pi, math.pi, **_finite),

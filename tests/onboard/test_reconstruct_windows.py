@@ -39,11 +39,11 @@ def row_times(draw):
     """Strictly increasing times: rows at one rate (30 Hz to one every 5 s, regular or each step longer by up to a
     factor of two) cut by up to three gaps of 5 s to minutes, with a window between 1 and 90 s.
 
-    Each step drawn on its own as dense, sparse or a gap (one in three a gap) left most cases a stretch of fewer than
+    One rate a case, not each step drawn as dense, sparse or a gap: those left most cases a stretch of fewer than
     ``MIN_ROWS`` rows between two gaps, refused before any window was planned."""
     n = draw(st.integers(0, 400))
     step_s = draw(st.one_of(st.floats(0.01, 0.2), st.floats(0.2, 5.0)))
-    # the jitter from a seed: hypothesis drawing 400 floats a case made the two properties four times slower
+    # the jitter from a seed: hypothesis drawing up to 400 floats a case made the properties several times slower
     spread = draw(st.floats(0.0, 1.0))
     steps = step_s * np.random.default_rng(draw(st.integers(0, 2**32 - 1))).uniform(1.0, 1.0 + spread, n)
     for at, gap_s in draw(st.lists(st.tuples(st.integers(0, 399), st.floats(5.0, 400.0)), max_size=3)):
