@@ -294,7 +294,19 @@ class TimeOffsetEstimator:
             )
         r = self.params.default_range_m if range_m is None else float(range_m)
         if not (math.isfinite(t) and np.isfinite(row).all()):
-            raise InputError("TimeOffsetEstimator.add: non-finite time, bearing or pose")
+            # named only here, once something is wrong: the check above stays one call per frame
+            bad = [
+                name
+                for name, ok in (
+                    ("t_s", math.isfinite(t)),
+                    ("bearing_cam", np.isfinite(row[0:3]).all()),
+                    ("q_ned_from_cam", np.isfinite(row[3:7]).all()),
+                    ("p_cam_ned_m", np.isfinite(row[7:10]).all()),
+                    ("v_cam_ned_mps", np.isfinite(row[10:13]).all()),
+                )
+                if not ok
+            ]
+            raise InputError(f"TimeOffsetEstimator.add: {', '.join(bad)} not finite")
         if not (math.isfinite(r) and r > 0):
             raise InputError(f"TimeOffsetEstimator.add: range_m must be a positive number, got {range_m!r}")
         if self._t and (track_id != self._track_id or t <= self._t[-1] or t - self._t[-1] > self.params.max_gap_s):

@@ -211,8 +211,11 @@ def test_outlier_block_is_refused():
 
 def test_refuses_non_finite_and_bad_params():
     est = TimeOffsetEstimator()
-    with pytest.raises(InputError, match=r"^TimeOffsetEstimator\.add: non-finite time, bearing or pose$"):
+    with pytest.raises(InputError, match=r"^TimeOffsetEstimator\.add: t_s not finite$"):
         est.add(float("nan"), [0, 0, 1], [1, 0, 0, 0], [0, 0, 0], [0, 0, 0], 100.0)
+    # the one that is not, named (it had said "non-finite time, bearing or pose" whichever it was)
+    with pytest.raises(InputError, match=r"^TimeOffsetEstimator\.add: q_ned_from_cam, v_cam_ned_mps not finite$"):
+        est.add(1.0, [0, 0, 1], [1, 0, math.inf, 0], [0, 0, 0], [0, math.nan, 0], 100.0)
     with pytest.raises(InputError, match=r"^TimeOffsetParams\.block_s must be a positive number, got 0\.0$"):
         TimeOffsetParams(block_s=0.0)
     with pytest.raises(
