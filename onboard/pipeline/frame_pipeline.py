@@ -469,7 +469,9 @@ class FramePipeline:
             try:
                 stamp_pose = pose = self.pose_source.pose_at(t_us)
                 shift_us = self._compensation_us()
-                if shift_us and stamp_pose is not None:  # looked up last: the pose the frame's 3-D is made with
+                # whether or not the stamp has a pose (the offset estimator's input only): a camera stamping later
+                # than the telemetry can be extrapolated has none once the image chain waits for the capture's
+                if shift_us:  # looked up last: the pose the frame's 3-D is made with
                     pose = self.pose_source.pose_at(t_us - shift_us)
                     self._shift_us = shift_us  # the track says so: its line of sight is of the stamp minus this
             except Exception as exc:  # noqa: BLE001 - a pose source bug costs this frame its 3-D only

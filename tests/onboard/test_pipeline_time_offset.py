@@ -81,6 +81,23 @@ def test_compensated_frames_get_the_pose_at_stamp_minus_offset_and_the_estimator
     assert _rig(0.0)[0].step(0).compensated_us == 0
 
 
+def test_a_camera_stamping_later_than_the_telemetry_reaches_still_gets_the_compensated_pose():
+    # 80 ms late, telemetry fed to 25 ms past the capture (stamp minus 80 ms) when the frame is processed: the
+    # capture is bracketed, the stamp 55 ms past the newest sample has no pose (this rig's attitude has no rates to
+    # extrapolate with; the daemon's, beyond pose.max_extrapolation_ms, 50 ms, none either). The live daemon is
+    # there once it compensates: its image chain waits for the capture's telemetry, not the stamp's
+    rig, stub, log = _rig(80.0)
+    tracks = [rig.step(k, lead_us=-55_000) for k in range(15)]
+    t_us = rig.scene.t_us(14)
+    assert log.times[-2:] == [t_us, t_us - 80_000]
+    assert rig.pose.pose_at(t_us) is None and rig.pose.pose_at(t_us - 80_000) is not None
+    los = tracks[-1].los
+    assert los is not None and tracks[-1].compensated_us == 80_000
+    np.testing.assert_allclose(los.p_cam_ned_m, rig.pose.pose_at(t_us - 80_000).p_cam_ned_m, atol=POS_TOL_M)
+    assert [name for name, _ in rig.est.calls].count("add") == 15
+    assert stub.fed == []  # the offset estimator gets no stamp pose: nothing to compare the bearing with
+
+
 def test_a_compensation_that_moves_restarts_the_estimator_a_small_drift_does_not():
     rig, stub, _ = _rig(0.0)
     rig.run(12)
