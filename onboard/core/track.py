@@ -77,8 +77,9 @@ known, observable or not; ``observable`` grades that position (trust it when tru
 the best estimate with its honest covariance, typically with a large range sigma).  They are null
 with no estimate (none yet, the track lost, the estimator off).  The daemon's
 ``output.unobservable_positions: false`` restores the /1 behaviour (positions only when observable).
-The line-of-sight keys (``los_*``, ``camera_ned_m``) are set on every frame with a target centre
-(``u_px``) and a pose, with or without a 3-D estimate: they need no range.
+The line-of-sight keys (``los_*``, ``camera_ned_m``) are set on every frame with a measured target centre
+(``measurement_valid``) and a pose, with or without a 3-D estimate: they need no range.  A coasting frame's
+centre is the tracker's prediction, whose error no pixel sigma bounds: it gets none.
 Non-finite numbers are never written (JSON has no NaN): they become null.  :func:`track_from_json`
 reads /1 and /2.
 

@@ -775,7 +775,9 @@ class FramePipeline:
         return source_origin if source_origin is not None else self.origin
 
     def _line_of_sight(self, upd, pose: PoseAt | None) -> LineOfSight | None:
-        if pose is None or upd.u_px is None:
+        # measured centres only: a coasting tracker's centre is its prediction, whose error no pixel sigma bounds
+        # (after a gap in the telemetry or the frames, 3-66 deg off while the sigma said 0.11 deg)
+        if pose is None or upd.u_px is None or not upd.measurement_valid:
             return None
         try:
             return line_of_sight_ned(

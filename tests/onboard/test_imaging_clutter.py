@@ -419,6 +419,13 @@ def test_objects_message_carries_every_confirmed_object_as_json():
         # with R = I the line of sight is the camera ray through the centre
         assert abs(los[0] / los[2] * K.fx_px + K.cx_px - o["u_px"]) < 1e-3
         assert o["state"] == "confirmed" and o["score"] >= 1.0
+        assert o["los_sigma_rad"] == pytest.approx(1.0 / K.fx_px)  # the chain's 1 px, no attitude error given
+    # the frames go on without either object: drawn where predicted, coasting, with no line of sight (a sigma grown
+    # by a pixel a frame said a few degrees where a prediction over a gap went tens off)
+    out = tr.update(_frame(rng, []), np.eye(3))
+    msg = json.loads(json.dumps(objects_message(out, 123489, attitude_sigma_rad=0.002)))
+    assert [o["state"] for o in msg["objects"]] == ["coasting", "coasting"]
+    assert all(o["u_px"] is not None and o["los_ned"] is None and o["los_sigma_rad"] is None for o in msg["objects"])
 
 
 def test_pipeline_runs_the_objects_chain_with_the_pose():

@@ -502,6 +502,19 @@ def test_telemetry_gap_gives_2d_tracks_and_predictions_then_recovers():
     assert all(tr.pose_valid for tr in after) and [c[0] for c in rig.est.calls][-3:] == ["add"] * 3
 
 
+def test_a_coasting_centre_makes_no_line_of_sight():
+    """A coasting tracker's centre is its prediction, whose error no pixel sigma bounds: a line of sight went out
+    of it with the measurement's sigma (3-66 deg off after a gap in the telemetry or the frames, while it said
+    0.11 deg).  The objects chain (the default) shows its prediction; the track keeps it, without a line of sight."""
+    rig = Rig(config=OnboardConfig())
+    measured = rig.run(12)
+    assert measured[-1].measurement_valid and measured[-1].los is not None
+    after = [rig.step(k, with_target=False) for k in range(12, 20)]
+    coasting = [tr for tr in after if tr.state == "coasting"]
+    assert coasting and all(tr.u_px is not None and tr.pose_valid for tr in coasting)
+    assert all(tr.los is None and not tr.measurement_valid for tr in coasting)
+
+
 def test_a_lost_target_resets_the_estimator_and_nulls_the_position():
     rig = Rig(ready_after=2)
     rig.run(5)
