@@ -348,11 +348,17 @@ def objects_message(
     the track; null until the daemon maps its boot clock to UTC), ``compensated_us`` (as in the track: the lines of
     sight are of ``time_boot_us`` minus it, the camera's measured latency), ``frame_index``, ``primary_id`` and
     ``objects``, one per confirmed or coasting object: ``id``, ``state``, ``u_px``, ``v_px``, ``box_px`` [x, y, w,
-    h], ``los_ned`` (unit line of sight, local NED, or null), ``los_sigma_rad`` (its 1-sigma per axis across it, or null: the chain's measurement, 1 px growing by
-    1 px a frame while coasting, and ``attitude_sigma_rad``, the camera attitude's error, in quadrature, as the
-    track's line of sight counts it), ``score``
-    (detection contrast over the local threshold, 0 while coasting) and ``primary``.  ``rays`` False (the frame has
-    no pose, or the daemon withholds its geometry): every ``los_ned`` and ``los_sigma_rad`` null, as the track's."""
+    h], ``los_ned`` (unit line of sight, local NED, or null), ``los_sigma_rad`` (its 1-sigma per axis across it, or
+    null: the chain's measurement, 1 px, and ``attitude_sigma_rad``, the camera attitude's error, in quadrature, as
+    the track's line of sight counts it), ``score`` (detection contrast over the local threshold, 0 while coasting)
+    and ``primary``.  A coasting object's centre is the chain's prediction: its ``los_ned`` and ``los_sigma_rad``
+    are null, as the track's on a coasting frame (a prediction carried over a gap in the telemetry or the frames
+    went tens of degrees off while a sigma grown by a pixel a frame said a few).  ``rays`` False (the frame has no
+    pose, or the daemon withholds its geometry): every ``los_ned`` and ``los_sigma_rad`` null, as the track's."""
+
+    def measured_ray(o) -> bool:
+        return o.los_ned is not None and rays and o.state != "coasting"
+
     return {
         "schema": "irtrack.objects/1",
         "time_boot_us": int(time_boot_us),
@@ -368,10 +374,8 @@ def objects_message(
                 "u_px": round(o.u_px, 3),
                 "v_px": round(o.v_px, 3),
                 "box_px": [round(b, 2) for b in o.bbox],
-                "los_ned": None if o.los_ned is None or not rays else [round(c, 7) for c in o.los_ned],
-                "los_sigma_rad": math.hypot(o.sigma_rad, attitude_sigma_rad)
-                if o.los_ned is not None and rays
-                else None,
+                "los_ned": [round(c, 7) for c in o.los_ned] if measured_ray(o) else None,
+                "los_sigma_rad": math.hypot(o.sigma_rad, attitude_sigma_rad) if measured_ray(o) else None,
                 "score": round(o.score, 3),
                 "primary": o.object_id == update.primary_id,
             }
