@@ -374,7 +374,7 @@ def objects_message(
                 "u_px": round(o.u_px, 3),
                 "v_px": round(o.v_px, 3),
                 "box_px": [round(b, 2) for b in o.bbox],
-                "los_ned": [round(c, 7) for c in o.los_ned] if measured_ray(o) else None,
+                "los_ned": [round(c, 7) for c in o.los_ned] if o.los_ned is not None and measured_ray(o) else None,
                 "los_sigma_rad": math.hypot(o.sigma_rad, attitude_sigma_rad) if measured_ray(o) else None,
                 "score": round(o.score, 3),
                 "primary": o.object_id == update.primary_id,
