@@ -89,7 +89,8 @@ Gimbal also ``time_reset``, ``reference_changed``, ``reference_invalid``.  ``reb
 position stream (all buffers cleared).  :meth:`PoseBuffer.pose_at` counts a miss as ``pose_<reason>``
 with reason ``time_invalid``, ``no_origin`` or
 ``<stream>_empty|before_buffer|not_yet|gap|extrapolation_limit``; an extrapolated pose is counted as
-``pose_extrapolated``.
+``pose_extrapolated``; a time looked up again at once with the same outcome (a frame's image chain, then the frame)
+is counted once.
 
 Discontinuities
 ---------------
@@ -278,6 +279,7 @@ class PoseBuffer:
         self.position_resets = 0  # position streams restarted after a persisting jump (``position_reset``)
         self.attitude_resets = 0  # attitude or gimbal steps the reported rates cannot explain (``<stream>_reset``)
         self.last_miss_reason: str | None = None
+        self._counted_at: tuple[int, str | None] | None = None  # the latest (time, outcome) pose_at counted
         # The streams arrive one after the other when the link comes up (the gimbal's first report, with
         # no rate to extrapolate by, can trail the first frames): a miss before the first pose served is the
         # start-up's, not a fault, and is logged at INFO; the status counts it all the same.
@@ -891,7 +893,13 @@ class PoseBuffer:
         """
         res = self.lookup(time_boot_us, extrapolate=extrapolate) if result is None else result
         self.last_miss_reason = res.reason
+        # one frame looks its time up more than once (its image chain's rotation, then its own pose): counted once,
+        # or a telemetry gap read as twice its missing poses
+        outcome = (time_boot_us, "extrapolated" if res.pose is not None and res.pose.extrapolated else res.reason)
+        repeated, self._counted_at = outcome == self._counted_at, outcome
         if res.pose is None:
+            if repeated:
+                return None
             self.counter.count(
                 f"pose_{res.reason}",
                 f"no pose at time_boot_us={time_boot_us!r}" + ("" if self.served_pose else " (start-up)"),
@@ -899,7 +907,7 @@ class PoseBuffer:
             )
             return None
         self.served_pose = True
-        if res.pose.extrapolated:
+        if res.pose.extrapolated and not repeated:
             p = res.pose
             self.counter.count(
                 "pose_extrapolated",

@@ -664,6 +664,25 @@ def test_attitude_extrapolation_with_body_rates_matches_a_constant_rate_rotation
     assert buf.counter["pose_extrapolated"] == 4
 
 
+def test_a_time_looked_up_again_with_the_same_outcome_is_counted_once():
+    """A frame's image chain and the frame itself look its time up in turn: every miss and every extrapolation was
+    counted twice (a telemetry gap at 30 frames/s read as 60 missing poses a second)."""
+    w = np.array([0.3, -0.2, 0.6])
+    buf = PoseBuffer(origin=ORIGIN)
+    for t in range(0, 100_001, 20_000):
+        assert buf.add_attitude(t, q_body_rate_true(t / US), w)
+        assert buf.add_position_ned(t, [0.0, 0.0, -50.0], [0.0, 0.0, 0.0])
+    assert buf.pose_at(110_000) is not None and buf.pose_at(110_000) is not None
+    assert buf.counter["pose_extrapolated"] == 1
+    assert buf.pose_at(120_000) is not None  # the next frame's time: counted
+    assert buf.counter["pose_extrapolated"] == 2
+    assert buf.pose_at(10_000_000) is None and buf.pose_at(10_000_000) is None
+    reason = f"pose_{buf.last_miss_reason}"
+    assert buf.counter[reason] == 1
+    assert buf.pose_at(10_020_000) is None and buf.counter[reason] == 2  # the next frame's: counted
+    assert buf.pose_at(110_000) is not None and buf.counter["pose_extrapolated"] == 3  # not the latest: counted
+
+
 def test_position_extrapolation_with_velocity_and_the_error_of_an_unmodelled_acceleration():
     a = np.array([1.5, -0.5, 0.2])  # m/s^2, not reported
     v0 = np.array([8.0, -3.0, 0.5])
