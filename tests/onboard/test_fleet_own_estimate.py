@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pymap3d
 import pytest
 
 from onboard.core.counters import RejectCounter
@@ -32,6 +33,7 @@ SIGMA_RAD = 0.5e-3
 UAV1, UAV2 = np.array([0.0, -150.0, -100.0]), np.array([0.0, 150.0, -100.0])
 A, B = np.array([800.0, 150.0, -100.0]), np.array([800.0, -150.0, -100.0])
 GHOST = np.array([400.0, 0.0, -100.0])
+ATOL_M = 1e-6  # 1 um: two WGS84 implementations agree to nanometres a kilometre out
 OWN_COV = np.diag([25.0, 25.0, 25.0])  # 5 m: a manoeuvring vehicle that ranged its object itself
 
 
@@ -114,8 +116,13 @@ def test_the_own_estimate_test_is_chi_square_and_the_crossing_is_weighted():
     assert math.sqrt(P[2, 2]) == pytest.approx(vertical, rel=1e-6)  # level rays: both measure the vertical
     along = (A - UAV1) / np.linalg.norm(A - UAV1)
     sin_cross = float(np.linalg.norm(np.cross(a.los_ned, b.los_ned)))  # 21 deg between the rays
-    # along ray a, the crossing moves by ray b's cross-range error over the sine of their angle
-    assert math.sqrt(along @ P @ along) == pytest.approx(ca.range_b_m * SIGMA_RAD / sin_cross, rel=0.5)
+    cos_cross = float(a.los_ned @ b.los_ned)
+    # in the level plane each ray informs only across itself, w n n^T with w = 1 / (r s)^2; inverting the 2 x 2
+    # sum in ray a's (along, across) basis gives along ray a ((r_b s)^2 + cos^2 (r_a s)^2) / sin^2: ray b's
+    # cross-range error over the sine, plus ray a's own cross-range error carried along it by ray b's slant
+    sigma_a_m, sigma_b_m = ca.range_a_m * SIGMA_RAD, ca.range_b_m * SIGMA_RAD
+    along_sigma_m = math.sqrt(sigma_b_m**2 + (cos_cross * sigma_a_m) ** 2) / sin_cross
+    assert math.sqrt(along @ P @ along) == pytest.approx(along_sigma_m, rel=1e-6)
     # rays parallel to within nothing: along them neither measures; the point there is the closest points' midpoint
     # and the variance is left huge, so an own estimate anywhere along them passes
     c, d = (
@@ -151,11 +158,19 @@ def test_a_track_brings_its_own_estimate_into_the_fleet_frame_only_where_observa
     ray = ray_from_track(TimedTrack(track, 1.0, "vehicle"), track.origin)
     np.testing.assert_allclose(ray.own_p_ned_m, track.p_ned_m, atol=1e-9)
     np.testing.assert_allclose(ray.own_cov_ned_m2, track.cov_p_ned_m2, atol=1e-9)
-    # a fleet frame 1 km east: the same point, 1 km west of it
-    east = type(track.origin)(track.origin.lat_deg, track.origin.lon_deg + 1000.0 / 94_500.0, track.origin.alt_m)
+    # a fleet frame about 1 km east: the same points, placed by pymap3d (an independent WGS84 implementation) from
+    # the track's frame through geodetic into the fleet's; the frames' axes differ by the meridians' convergence
+    # (about 5 mm over the 130 m between camera and object), which a translation alone would miss
+    o = track.origin
+    east = type(o)(o.lat_deg, o.lon_deg + 1000.0 / 94_500.0, o.alt_m)
     moved = ray_from_track(TimedTrack(track, 1.0, "vehicle"), east)
-    assert moved.own_p_ned_m[1] == pytest.approx(-1000.0, abs=15.0)
-    np.testing.assert_allclose(moved.own_p_ned_m - moved.p_cam_ned_m, ray.own_p_ned_m - ray.p_cam_ned_m, atol=0.05)
+
+    def in_east(p_ned_m):
+        lat, lon, alt = pymap3d.ned2geodetic(*p_ned_m, o.lat_deg, o.lon_deg, o.alt_m)
+        return np.array(pymap3d.geodetic2ned(lat, lon, alt, east.lat_deg, east.lon_deg, east.alt_m))
+
+    np.testing.assert_allclose(moved.own_p_ned_m, in_east(track.p_ned_m), rtol=0, atol=ATOL_M)
+    np.testing.assert_allclose(moved.p_cam_ned_m, in_east(los.p_cam_ned_m), rtol=0, atol=ATOL_M)
     unobservable = positioned_track(los=los, observable=False)
     assert ray_from_track(TimedTrack(unobservable, 1.0, "vehicle"), track.origin).own_p_ned_m is None
 
