@@ -34,17 +34,22 @@ def test_a_blocks_lines_of_sight_are_the_per_frame_ones(bearings, quats):
 
 
 @pytest.mark.parametrize(
-    "args",
+    "args, message",
     [
-        ([0.0, 1.0], [1.0, 0, 0, 0], [0.0, 0, 0], [0.0, 0, 0]),  # a 2-vector bearing
-        ([0.0, 0, 1], [1.0, 0, 0], [0.0, 0, 0, 0], [0.0, 0, 0]),  # sizes that add up, wrongly split
-        ([0.0, 0, 1], [1.0, 0, 0, 0], [0.0, 0, 0], [0.0, 0]),
+        (([0.0, 1.0], [1.0, 0, 0, 0], [0.0, 0, 0], [0.0, 0, 0]), "bearing_cam has 2 values, expected 3"),
+        # sizes that add up, wrongly split
+        (
+            ([0.0, 0, 1], [1.0, 0, 0], [0.0, 0, 0, 0], [0.0, 0, 0]),
+            "q_ned_from_cam has 3 values, expected 4; p_cam_ned_m has 4 values, expected 3",
+        ),
+        (([0.0, 0, 1], [1.0, 0, 0, 0], [0.0, 0, 0], [0.0, 0]), "v_cam_ned_mps has 2 values, expected 3"),
     ],
 )
-def test_a_frame_of_the_wrong_shape_is_refused_and_not_kept(args):
+def test_a_frame_of_the_wrong_shape_is_refused_and_not_kept(args, message):
     est = TimeOffsetEstimator()
-    with pytest.raises(InputError):
+    with pytest.raises(InputError) as e:
         est.add(1.0, *args, 100.0)
+    assert str(e.value) == f"TimeOffsetEstimator.add: {message}"
     est.add(2.0, [0.0, 0, 1], [1.0, 0, 0, 0], [0.0, 0, 0], [1.0, 0, 0], 100.0)
     est.close_block()  # one frame: nothing to pool, and no leftover of the refused one
     assert est.estimate.blocks == 0 and est.estimate.frames == 0
