@@ -79,8 +79,11 @@ def test_keys():
     assert track_key("a-b_c.1") == "irtrack/a-b_c.1/track"
     assert status_key() == "irtrack/uav1/status"
     for bad in ("", "a/b", "uav*", "$x", "a b", None):
-        with pytest.raises(ZenohConfigError):
+        with pytest.raises(ZenohConfigError) as e:
             check_vehicle_name(bad)
+        assert str(e.value) == (
+            f"vehicle name must be non-empty letters, digits, '_', '.', '-' (one zenoh key chunk), got {bad!r}"
+        )
 
 
 @pytest.mark.integration
@@ -248,18 +251,25 @@ def test_missing_config_file(tmp_path):
 
 
 @pytest.mark.parametrize(
-    "kwargs",
+    "kwargs, message",
     [
-        dict(connect=("bogus",)),
-        dict(listen=("tcp/127.0.0.1:99999",)),
-        dict(connect_timeout_s=0),
-        dict(connect_timeout_s=float("nan")),
-        dict(multicast_scouting="yes"),
+        (
+            dict(connect=("bogus",)),
+            "connect[0]: expected a zenoh endpoint <protocol>/<address>, e.g. tcp/127.0.0.1:7447, got 'bogus'",
+        ),
+        (
+            dict(listen=("tcp/127.0.0.1:99999",)),
+            "listen[0]: expected a tcp endpoint tcp/HOST:PORT with PORT in 0..65535, got 'tcp/127.0.0.1:99999'",
+        ),
+        (dict(connect_timeout_s=0), "connect_timeout_s: expected a number in (0, 3600] or null, got 0"),
+        (dict(connect_timeout_s=float("nan")), "connect_timeout_s: expected a number in (0, 3600] or null, got nan"),
+        (dict(multicast_scouting="yes"), "multicast_scouting: expected true or false or null, got 'yes'"),
     ],
 )
-def test_settings_validation(kwargs):
-    with pytest.raises(SchemaError):
+def test_settings_validation(kwargs, message):
+    with pytest.raises(SchemaError) as e:
         ZenohConfig(**kwargs)
+    assert str(e.value) == f"<ZenohConfig>: {message}"
 
 
 @pytest.mark.integration

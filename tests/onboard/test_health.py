@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import os
 import subprocess
 import sys
@@ -120,8 +121,12 @@ def test_mark_alive_uses_env_path(tmp_path, monkeypatch):
 
 
 def test_mark_alive_raises_when_directory_missing(tmp_path):
-    with pytest.raises(OSError):
-        health.mark_alive(str(tmp_path / "no-such-dir" / "alive"))
+    path = str(tmp_path / "no-such-dir" / "alive")
+    with pytest.raises(OSError) as e:
+        health.mark_alive(path)
+    # the service logs the error and reports its strerror under the path: both must say what and where
+    assert (e.value.errno, e.value.strerror, e.value.filename) == (errno.ENOENT, os.strerror(errno.ENOENT), path)
+    assert not os.path.exists(os.path.dirname(path))  # nothing created on the way
 
 
 def test_check_liveness_uses_mtime(tmp_path):

@@ -65,8 +65,10 @@ def test_frame_queue_drops_the_oldest_and_says_so():
     q = FrameQueue(2)
     assert [q.push(i) for i in range(4)] == [0, 0, 1, 1]
     assert [q.pop(0.0), q.pop(0.0), q.pop(0.0)] == [2, 3, None]
-    with pytest.raises(InputError):
-        FrameQueue(0)
+    for bad in (0, -1, 2.0, True, None):  # a bool or a float is no length, though Python would take them for one
+        with pytest.raises(InputError) as e:
+            FrameQueue(bad)
+        assert str(e.value) == f"FrameQueue maxlen must be a positive integer, got {bad!r}"
 
 
 class _SignallingCondition(threading.Condition):
