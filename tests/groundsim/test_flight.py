@@ -279,8 +279,11 @@ def test_bad_reference_and_origin_rejected():
         FlownVehicle(object(), ORIGIN)
     with pytest.raises(FlightError, match="origin"):
         FlownVehicle(_straight(), (47.0, 8.0, 0.0))
-    with pytest.raises(FlightError, match="cannot be flown"):  # free fall at t = 0
+    with pytest.raises(FlightError) as e:  # free fall at t = 0
         FlownVehicle(Cubic((0.0, 0.0, -50.0), (0.0, 0.0, 0.0), (0.0, 0.0, GRAVITY_MPS2)), ORIGIN)
+    assert str(e.value).startswith(
+        "observer: reference at t = 0 cannot be flown: thrust specific force f_ned_mps2 (0.0, 0.0, 0.0) m/s^2"
+    )
 
 
 def test_step_to_rejects_time_going_back_and_bad_look_at():
@@ -345,8 +348,22 @@ def test_tilt_signs():
     assert roll > 0 and pitch == pytest.approx(0.0, abs=1e-12)
     roll, pitch, _ = tilt_from_specific_thrust((2.0, 0.0, -g), math.pi / 2)  # north while heading east: bank left
     assert roll < 0 and pitch == pytest.approx(0.0, abs=1e-12)
-    with pytest.raises(GuidanceError):
-        tilt_from_specific_thrust((0.0, 0.0, 1.0), 0.0)
+
+
+@pytest.mark.parametrize(
+    "f_ned_mps2, shown",
+    [
+        ((0.0, 0.0, 1.0), "(0.0, 0.0, 1.0)"),  # thrust pushing down
+        (np.array([0.3, 0.0, -0.3]), "(0.3, 0.0, -0.3)"),  # upward, but near free fall: the tilt is ill-defined
+    ],
+)
+def test_thrust_that_does_not_point_up_is_refused_with_its_value(f_ned_mps2, shown):
+    with pytest.raises(GuidanceError) as e:
+        tilt_from_specific_thrust(f_ned_mps2, 0.0)
+    assert str(e.value) == (
+        f"thrust specific force f_ned_mps2 {shown} m/s^2 does not point up: expected a negative down component and a "
+        "magnitude of at least 0.5 m/s^2"
+    )
 
 
 @given(roll=angles, pitch=angles, yaw=yaws, rates=st.tuples(*[st.floats(-1.0, 1.0)] * 3))

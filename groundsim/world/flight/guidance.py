@@ -221,7 +221,11 @@ def tilt_from_specific_thrust(f_ned_mps2, yaw_rad: float) -> tuple:
     fn, fe, fd = f_ned_mps2
     c = math.sqrt(fn * fn + fe * fe + fd * fd)
     if not c >= _MIN_SPECIFIC_THRUST_MPS2 or fd >= 0.0:
-        raise GuidanceError(f"thrust specific force {tuple(f_ned_mps2)!r} m/s^2 does not point up")
+        f = tuple(float(x) for x in f_ned_mps2)  # plain floats: a numpy scalar's repr buries the numbers
+        raise GuidanceError(
+            f"thrust specific force f_ned_mps2 {f!r} m/s^2 does not point up: expected a negative down component and "
+            f"a magnitude of at least {_MIN_SPECIFIC_THRUST_MPS2} m/s^2"
+        )
     cy, sy = math.cos(yaw_rad), math.sin(yaw_rad)
     fx = cy * fn + sy * fe
     fy = -sy * fn + cy * fe
