@@ -159,8 +159,12 @@ def ellipsoid_of_cov(cov_ned_m2, n_sigma: float = 1.0) -> tuple[np.ndarray, np.n
     q_ned_from_axes (w, x, y, z))``, the diameters along the axes the quaternion turns into NED
     (eigenvectors, right-handed).  Negative eigenvalues (round-off) count as zero."""
     c = np.asarray(cov_ned_m2, dtype=float)
-    if c.shape != (3, 3) or not np.all(np.isfinite(c)):
-        raise InputError(f"covariance: expected a finite 3x3 matrix, got shape {c.shape}")
+    if c.shape != (3, 3):
+        raise InputError(f"cov_ned_m2: expected a finite 3x3 matrix, got shape {c.shape}")
+    if not np.all(np.isfinite(c)):
+        raise InputError(
+            f"cov_ned_m2: expected a finite 3x3 matrix, got {np.count_nonzero(~np.isfinite(c))} of 9 entries not finite"
+        )
     w, V = np.linalg.eigh(0.5 * (c + c.T))
     if np.linalg.det(V) < 0:
         V[:, 2] = -V[:, 2]

@@ -54,9 +54,18 @@ def test_ellipsoid_of_cov_rebuilds_the_covariance_and_is_right_handed():
     np.testing.assert_allclose(R @ np.diag(semi**2) @ R.T, cov, atol=1e-9)
 
 
-def test_ellipsoid_of_cov_refuses_a_non_finite_matrix():
-    with pytest.raises(InputError):
-        ellipsoid_of_cov(np.full((3, 3), np.nan))
+@pytest.mark.parametrize(
+    "cov, got",
+    [
+        (np.full((3, 3), np.nan), "9 of 9 entries not finite"),
+        (np.diag([1.0, np.inf, 1.0]), "1 of 9 entries not finite"),
+        (np.eye(2), "shape (2, 2)"),
+    ],
+)
+def test_ellipsoid_of_cov_refuses_a_non_finite_or_misshapen_matrix(cov, got):
+    with pytest.raises(InputError) as e:
+        ellipsoid_of_cov(cov)
+    assert str(e.value) == f"cov_ned_m2: expected a finite 3x3 matrix, got {got}"
 
 
 def test_los_and_frustum_point_where_the_camera_looks():
