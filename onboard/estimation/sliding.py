@@ -517,7 +517,17 @@ class SlidingWindowEstimator:
         p = np.asarray(p_cam_ned_m, dtype=float).reshape(3)
         q = np.asarray(q_ned_from_cam, dtype=float).reshape(4)
         if not (math.isfinite(t) and np.all(np.isfinite(uv)) and np.all(np.isfinite(p)) and np.all(np.isfinite(q))):
-            raise InputError("SlidingWindowEstimator.add: non-finite observation")
+            bad = [
+                name
+                for name, ok in (
+                    ("t_s", math.isfinite(t)),
+                    ("uv_px", np.all(np.isfinite(uv))),
+                    ("p_cam_ned_m", np.all(np.isfinite(p))),
+                    ("q_ned_from_cam", np.all(np.isfinite(q))),
+                )
+                if not ok
+            ]
+            raise InputError(f"SlidingWindowEstimator.add: {', '.join(bad)} not finite")
         w_px, h_px = intrinsics.width_px, intrinsics.height_px
         if far_off_image(uv[0], w_px) or far_off_image(uv[1], h_px):
             # no camera sees there: a corrupt measurement, which one incremental step would take into the window's
@@ -530,7 +540,7 @@ class SlidingWindowEstimator:
         except FrameError as exc:
             raise InputError(str(exc)) from None
         if self._t and t <= self._t[-1]:
-            raise InputError(f"SlidingWindowEstimator.add: time {t} is not after the previous {self._t[-1]}")
+            raise InputError(f"SlidingWindowEstimator.add: t_s {t!r} is not after the previous row's {self._t[-1]!r}")
         if self._t and t - self._t[-1] < self.config.min_spacing_s:
             # not kept (module docstring): the newest estimate, at most min_spacing_s old, carried to this
             # frame's time at constant velocity and seen from its camera (millimetres from the spline's own

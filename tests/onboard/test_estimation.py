@@ -294,13 +294,34 @@ def test_sliding_window_rejects_time_going_backwards_without_losing_state():
     sw = SlidingWindowEstimator(noise=estimator_noise_model(nc))
     K = sc.camera.intrinsics
     sw.add(1.0, obs.uv_px[0], K, obs.p_cam_ned_m[0], obs.q_ned_from_cam[0])
-    with pytest.raises(InputError, match="not after"):
-        sw.add(0.5, obs.uv_px[1], K, obs.p_cam_ned_m[1], obs.q_ned_from_cam[1])
-    with pytest.raises(InputError):
-        sw.add(2.0, obs.uv_px[1], K, obs.p_cam_ned_m[1], [0.0, 0.0, 0.0, 0.0])
-    for uv in ((2000.0, 256.0), (320.0, -600.0), (1e4, 1e4)):  # no camera sees there: a corrupt measurement
-        with pytest.raises(InputError, match="far outside the 640 x 512 image"):
-            sw.add(2.0, uv, K, obs.p_cam_ned_m[1], obs.q_ned_from_cam[1])
+    refused = [
+        (
+            (0.5, obs.uv_px[1], K, obs.p_cam_ned_m[1], obs.q_ned_from_cam[1]),
+            "t_s 0.5 is not after the previous row's 1.0",
+        ),
+        (
+            (1.0, obs.uv_px[1], K, obs.p_cam_ned_m[1], obs.q_ned_from_cam[1]),
+            "t_s 1.0 is not after the previous row's 1.0",
+        ),
+        (
+            (2.0, obs.uv_px[1], K, obs.p_cam_ned_m[1], [0.0, 0.0, 0.0, 0.0]),
+            "q_ned_from_cam: quaternion norm 0 is not 1 within 0.001",
+        ),
+        ((math.nan, (1.0, math.inf), K, obs.p_cam_ned_m[1], obs.q_ned_from_cam[1]), "t_s, uv_px not finite"),
+        ((2.0, obs.uv_px[1], K, (0.0, math.nan, 0.0), (math.nan,) * 4), "p_cam_ned_m, q_ned_from_cam not finite"),
+    ]
+    # no camera sees there: a corrupt measurement
+    for uv, shown in (((2000.0, 256.0), "2000, 256"), ((320.0, -600.0), "320, -600"), ((1e4, 1e4), "10000, 10000")):
+        refused.append(
+            (
+                (2.0, uv, K, obs.p_cam_ned_m[1], obs.q_ned_from_cam[1]),
+                f"pixel ({shown}) is far outside the 640 x 512 image",
+            )
+        )
+    for args, message in refused:
+        with pytest.raises(InputError) as e:
+            sw.add(*args)
+        assert str(e.value) == f"SlidingWindowEstimator.add: {message}"
     assert len(sw._t) == 1
 
 
