@@ -4,6 +4,7 @@ the ``overload`` warning on counts."""
 from __future__ import annotations
 
 import logging
+import math
 
 import pytest
 from hypothesis import given
@@ -70,9 +71,44 @@ def test_proc_cgroup(text, expected):
     assert parse_proc_cgroup(text) == expected
 
 
-@given(st.text(max_size=300))
-def test_proc_cgroup_never_raises(text):
-    parse_proc_cgroup(text)
+# one line's characters: no line break of any kind str.splitlines knows (control characters, line and paragraph
+# separators), so a generated line stays one line
+LINE_CHARS = st.characters(blacklist_categories=("Cc", "Zl", "Zp"))
+# lines near the files' grammar beside plain garbage: random text alone almost never holds a valid line, and a
+# check of what comes back would then only ever see None
+CGROUP_LINES = st.lists(
+    st.one_of(
+        st.builds(
+            "{}:{}:{}".format,
+            st.sampled_from(["0", "0", "1", "12", "x", ""]),  # v2's "0::" often, so it meets v1 lines
+            st.sampled_from(["", "", "cpu", "cpu,cpuacct", "cpuacct", "memory"]),
+            st.text(LINE_CHARS, max_size=20),
+        ),
+        st.text(LINE_CHARS, max_size=40),
+    ),
+    max_size=6,
+).map("\n".join)
+
+
+def _cgroup_lines(text):
+    return [line.strip().split(":", 2) for line in text.splitlines()]
+
+
+@given(st.one_of(st.text(max_size=300), CGROUP_LINES))
+def test_proc_cgroup_never_raises_and_returns_a_line_of_the_text(text):
+    got = parse_proc_cgroup(text)
+    lines = _cgroup_lines(text)
+    v1 = [parts for parts in lines if len(parts) == 3 and "cpu" in parts[1].split(",")]
+    v2 = [parts for parts in lines if len(parts) == 3 and parts[:2] == ["0", ""]]
+    if got is None:
+        assert not v1 and not v2
+        return
+    version, path = got
+    assert type(version) is int and type(path) is str
+    if version == 1:  # the first line naming the cpu controller: a v1 quota lives there
+        assert path == v1[0][2]
+    else:
+        assert version == 2 and not v1 and path == v2[-1][2]
 
 
 def test_cpu_stat_v1_and_v2():
@@ -85,13 +121,62 @@ def test_cpu_stat_v1_and_v2():
     assert parse_cgroup_cpu_stat("usage_usec 5\nuser_usec 4\n") is None
 
 
-@pytest.mark.parametrize("parse", [parse_proc_stat, parse_cgroup_cpu_stat], ids=["proc_stat", "cpu_stat"])
-@given(st.text(max_size=300))
-def test_garbage_raises_input_error_only(parse, text):
+# a token of a counter file: an integer (negative and past 64 bits too), or a word
+TOKENS = st.one_of(st.integers(-(2**65), 2**65).map(str), st.text(LINE_CHARS, min_size=1, max_size=6))
+PROC_STAT_LINES = st.builds(
+    "{} ({}) {}".format,
+    st.integers(1, 2**22),
+    # a command name may hold spaces and parentheses
+    st.one_of(st.text(st.sampled_from("a1() "), max_size=8), st.text(LINE_CHARS, max_size=12)),
+    st.one_of(  # counts only (most parse), or counts among words and negative numbers
+        st.lists(st.integers(0, 2**64).map(str), min_size=13, max_size=20),
+        st.lists(st.one_of(st.integers(0, 2**64).map(str), TOKENS), min_size=13, max_size=20),
+    ).map(" ".join),
+)
+CPU_STAT_LINES = st.lists(
+    st.builds(
+        "{} {}".format,
+        st.sampled_from(["nr_periods", "nr_throttled", "throttled_usec", "throttled_time", "usage_usec", "x"]),
+        TOKENS,
+    ),
+    max_size=6,
+).map("\n".join)
+
+
+@given(st.one_of(st.text(max_size=300), PROC_STAT_LINES))
+def test_proc_stat_garbage_raises_input_error_only_and_returns_counts(text):
     try:
-        parse(text)
+        got = parse_proc_stat(text)
     except InputError:
-        pass
+        return
+    ticks = (got.utime_ticks, got.stime_ticks, got.cutime_ticks, got.cstime_ticks)
+    assert all(type(t) is int and t >= 0 for t in ticks)
+    # fields 14-17, counted after the command name's last ')'
+    assert list(ticks) == [int(f) for f in text[text.rfind(")") + 1 :].split()[11:15]]
+
+
+def _is_counter(parts, names):
+    if len(parts) != 2 or parts[0] not in names:
+        return False
+    try:
+        int(parts[1])
+    except ValueError:
+        return False
+    return True
+
+
+@given(st.one_of(st.text(max_size=300), CPU_STAT_LINES))
+def test_cpu_stat_garbage_raises_input_error_only_and_returns_counts(text):
+    try:
+        got = parse_cgroup_cpu_stat(text)
+    except InputError:
+        return
+    if got is None:  # only when no line is a throttled-time counter
+        assert not any(_is_counter(line.split(), ("throttled_usec", "throttled_time")) for line in text.splitlines())
+        return
+    assert type(got.nr_periods) is int and type(got.nr_throttled) is int and type(got.throttled_s) is float
+    assert got.nr_periods >= 0 and got.nr_throttled >= 0
+    assert math.isfinite(got.throttled_s) and got.throttled_s >= 0.0
 
 
 @given(quota_us=st.integers(1, 10**7), period_us=st.integers(1000, 10**6))
