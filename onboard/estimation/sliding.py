@@ -513,9 +513,23 @@ class SlidingWindowEstimator:
         height outside the image (the row is not added).
         """
         t = float(t_s)
-        uv = np.asarray(uv_px, dtype=float).reshape(2)
-        p = np.asarray(p_cam_ned_m, dtype=float).reshape(3)
-        q = np.asarray(q_ned_from_cam, dtype=float).reshape(4)
+        try:
+            uv = np.asarray(uv_px, dtype=float).reshape(2)
+            p = np.asarray(p_cam_ned_m, dtype=float).reshape(3)
+            q = np.asarray(q_ned_from_cam, dtype=float).reshape(4)
+        except ValueError:  # a wrong size (numpy's reshape error names no argument): the refusal names them
+            wrong = [
+                f"{name} has {np.size(value)} values, expected {size}"
+                for name, value, size in (
+                    ("uv_px", uv_px, 2),
+                    ("p_cam_ned_m", p_cam_ned_m, 3),
+                    ("q_ned_from_cam", q_ned_from_cam, 4),
+                )
+                if np.size(value) != size
+            ]
+            raise InputError(
+                f"SlidingWindowEstimator.add: {'; '.join(wrong) or 'an argument is not numbers'}"
+            ) from None
         if not (math.isfinite(t) and np.all(np.isfinite(uv)) and np.all(np.isfinite(p)) and np.all(np.isfinite(q))):
             bad = [
                 name

@@ -309,6 +309,12 @@ def test_sliding_window_rejects_time_going_backwards_without_losing_state():
         ),
         ((math.nan, (1.0, math.inf), K, obs.p_cam_ned_m[1], obs.q_ned_from_cam[1]), "t_s, uv_px not finite"),
         ((2.0, obs.uv_px[1], K, (0.0, math.nan, 0.0), (math.nan,) * 4), "p_cam_ned_m, q_ned_from_cam not finite"),
+        # a wrong size was numpy's ValueError, naming no argument
+        ((2.0, (1.0, 2.0, 3.0), K, obs.p_cam_ned_m[1], obs.q_ned_from_cam[1]), "uv_px has 3 values, expected 2"),
+        (
+            (2.0, obs.uv_px[1], K, (1.0, 2.0), (1.0, 0.0, 0.0)),
+            "p_cam_ned_m has 2 values, expected 3; q_ned_from_cam has 3 values, expected 4",
+        ),
     ]
     # no camera sees there: a corrupt measurement
     for uv, shown in (((2000.0, 256.0), "2000, 256"), ((320.0, -600.0), "320, -600"), ((1e4, 1e4), "10000, 10000")):
