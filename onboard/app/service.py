@@ -76,7 +76,7 @@ from onboard.app.observers import (
 from onboard.app.os_thread import name_os_thread
 from onboard.app.shared_pose import SharedPoseBuffer
 from onboard.app.status_sections import camera_section, time_offset_section
-from onboard.app.watchdog import Watchdog
+from onboard.app.watchdog import OVERLOAD_CLEAR_S, STALL_NAMED_S, Watchdog
 from onboard.core.errors import InputError
 from onboard.core.irframe import IrFrame, IrFrameError, check_payload_size, decode_irframe
 from onboard.core.pose import PoseBuffer
@@ -129,6 +129,7 @@ class OnboardService:
         self.config = config
         self._clock = clock
         self._clock_ns = clock_ns
+        self._stall: tuple[float, float] = (-math.inf, 0.0)  # (when, how long) the main loop last stood still
         self.counter = LockedCounter(
             log_interval_s=config.logging.reject_log_interval_s,
             clock=clock,
@@ -557,7 +558,16 @@ class OnboardService:
         last_cpu = (now, time.process_time(), self._pipeline_cpu_s + self._worker_cpu())
         next_watch = now
         turn_s = now
+        previous_turn_s = now
         while not self._stop.is_set() and now < end:
+            # the loop turns every 50 ms at most; one a second late is the process standing still (SIGSTOP, a paused
+            # or swapping computer: a CPU quota holds it back for a period, 100 ms), which overload names.  The
+            # process CPU time cannot tell it apart: the threads resume at once on the frames and telemetry queued
+            # meanwhile, before this thread looks
+            top_s = self._clock()
+            gap_s, previous_turn_s = top_s - previous_turn_s, top_s
+            if gap_s >= STALL_NAMED_S:
+                self._stall = (top_s, gap_s)
             try:
                 if self.link is not None:  # None until start()
                     self.link.poll()
@@ -659,6 +669,7 @@ class OnboardService:
             cpu_words=self.cpu_load.words(),
             estimator_silent_s=float(getattr(self.estimator, "silent_s", 0.0)),
             quota_bound=self.cpu_load.quota_bound(),
+            stalled_s=self._stall[1] if now - self._stall[0] < OVERLOAD_CLEAR_S else 0.0,
         )
         if self.link is not None:
             if self._first_telemetry_s is None and self.pose.newest_time_boot_us() is not None:

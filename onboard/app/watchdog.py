@@ -132,6 +132,9 @@ OVERLOAD_CLEAR_S = 5.0
 VIDEO_RATE_TOLERANCE = 0.2
 ROTATION_SILENT_S = 2.0
 ESTIMATOR_RESTART_CLEAR_S = 30.0
+#: a main-loop turn this much later than the previous one is a stall of the whole process, named as overload's cause
+#: (the loop turns at least every 50 ms while it runs; a second is twenty times that)
+STALL_NAMED_S = 1.0
 ESTIMATOR_SILENT_S = 1.0  # a worker that has answered nothing this long is named as overload's cause
 INPUTS_LIVE_S = 1.0  # frames and MAVLink messages within this long count as arriving, for no_attitude
 
@@ -558,13 +561,16 @@ class Watchdog:
         cpu_words: str = "",
         estimator_silent_s: float = 0.0,
         quota_bound: bool | None = None,
+        stalled_s: float = 0.0,
     ) -> None:
         """Update with the running counts of frames dropped and positions withheld as too old;
         ``cpu_words``: the CPU the daemon got, in words, for the message (see ``overload``);
         ``estimator_silent_s``: how long the estimator's worker process has answered nothing (the cause the message
         names instead of the CPU when frames are not being dropped); ``quota_bound``: whether its CPU quota ran out
         in the last interval (False: a quota that did not bind, so other work on the computer took the CPU; None:
-        unknown), which decides the advice."""
+        unknown), which decides the advice; ``stalled_s``: the longest time the daemon's main loop did not turn at
+        all since the overload's frames began to be lost (a stopped process, a paused or swapping computer), named
+        as the cause instead of the CPU share when it is at least :data:`STALL_NAMED_S`."""
         counts = (int(frames_dropped), int(estimates_stale))
         last, self._load_counts = self._load_counts, counts
         if last is None:
@@ -583,7 +589,15 @@ class Watchdog:
                 f"{self._load_seen[0]} frames dropped and {self._load_seen[1]} positions withheld as too old since the "
                 f"overload began {since:.1f} s ago"
             )
-            if counts[0] == last[0] and estimator_silent_s >= ESTIMATOR_SILENT_S:
+            if stalled_s >= STALL_NAMED_S:
+                # every thread stood still (SIGSTOP, a VM paused, the machine swapping): no CPU share explains it,
+                # and the CPU it got over the interval (a fraction of a core) would point at the wrong remedy
+                self._raise(
+                    "overload",
+                    f"{seen}: the daemon stood still for {stalled_s:.1f} s (its process stopped, or this computer "
+                    "paused or swapped), not a matter of its CPU share",
+                )
+            elif counts[0] == last[0] and estimator_silent_s >= ESTIMATOR_SILENT_S:
                 # the frames keep up and the worker does not answer: a stopped or stalled process, not the CPU
                 self._raise(
                     "overload",

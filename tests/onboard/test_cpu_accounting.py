@@ -319,6 +319,19 @@ def test_overload_names_a_silent_estimator_worker_instead_of_the_cpu(caplog):
     assert "does not get the CPU it needs" in wd.active[0].message
 
 
+def test_overload_names_a_stall_of_the_whole_process_instead_of_the_cpu_share(caplog):
+    """A daemon stopped 3 s (SIGSTOP, a paused VM) dropped frames and was told it 'does not get the CPU it needs (it
+    got 0.24 of a core)', with advice to raise its CPU limit (a fault-injection audit)."""
+    wd = _watchdog(caplog)
+    wd.load(0.0, frames_dropped=0, estimates_stale=0)
+    wd.load(3.5, frames_dropped=20, estimates_stale=2, cpu_words=" (it got 0.24 of a core)", stalled_s=3.04)
+    (w,) = wd.active
+    assert "stood still for 3.0 s (its process stopped, or this computer paused or swapped)" in w.message
+    assert "cpus" not in w.message and "0.24 of a core" not in w.message
+    wd.load(4.0, frames_dropped=25, estimates_stale=2, stalled_s=0.0)  # losing frames on, no stall: the CPU's words
+    assert "does not get the CPU it needs" in wd.active[0].message
+
+
 @pytest.mark.parametrize(
     "quota_bound, says, not_said",
     [
