@@ -462,7 +462,12 @@ def test_camera_below_ground_is_rendered_at_ground_level():
         (dict(p_cam_ned_m=[0.0, 0.0]), "p_cam_ned_m"),
         (dict(R_ned_from_cam=np.eye(3) * 1.01), "R_ned_from_cam"),
         (dict(R_ned_from_cam=np.diag([1.0, 1.0, -1.0])), "R_ned_from_cam"),
-        (dict(R_ned_from_cam=np.eye(2)), "R_ned_from_cam"),
+        (dict(R_ned_from_cam=np.eye(2)), r"R_ned_from_cam: expected a finite 3x3 rotation matrix, got shape \(2, 2\)"),
+        # not finite: said so (it had said "got shape (3, 3)")
+        (
+            dict(R_ned_from_cam=np.full((3, 3), np.nan)),
+            r"R_ned_from_cam: expected a finite 3x3 rotation matrix, got 9 of 9 entries not finite",
+        ),
         (dict(p_target_ned_m=[1.0, 2.0, "x"]), "p_target_ned_m"),
         (dict(R_ned_from_target_body=None), "R_ned_from_target_body"),
         (dict(R_ned_from_target_body=np.ones((3, 3))), "R_ned_from_target_body"),

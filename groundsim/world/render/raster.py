@@ -176,8 +176,12 @@ def _rotation(R, name: str) -> np.ndarray:
         a = np.asarray(R, dtype=float)
     except (TypeError, ValueError) as exc:
         raise InputError(f"{name}: expected a 3x3 rotation matrix") from exc
-    if a.shape != (3, 3) or not np.all(np.isfinite(a)):
+    if a.shape != (3, 3):
         raise InputError(f"{name}: expected a finite 3x3 rotation matrix, got shape {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise InputError(
+            f"{name}: expected a finite 3x3 rotation matrix, got {np.count_nonzero(~np.isfinite(a))} of 9 entries not finite"
+        )
     if np.max(np.abs(a.T @ a - np.eye(3))) > ROT_TOL or np.linalg.det(a) < 0.0:
         raise InputError(f"{name}: not a proper rotation (R^T R != I within {ROT_TOL} or det < 0)")
     return a
