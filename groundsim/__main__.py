@@ -8,9 +8,7 @@ single_thread_blas_env()
 
 import sys  # noqa: E402
 
-from groundsim.app.cli import main  # noqa: E402
-from groundsim.io.stop_signals import settle_exit  # noqa: E402
-from onboard.app.cli_args import exit_code_of  # noqa: E402
+from groundsim.app.cli import entry  # noqa: E402
 
 if __name__ == "__main__":
-    sys.exit(settle_exit(exit_code_of(main)))  # `... | head`: no traceback
+    sys.exit(entry())

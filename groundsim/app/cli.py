@@ -27,7 +27,7 @@ from pathlib import Path
 
 from groundsim.app.report import add_report
 from groundsim.io.stop_signals import EXIT_INTERRUPTED, install_stop_signals, print_interrupted
-from onboard.app.cli_args import EXIT_USAGE, OneLineParser
+from onboard.app.cli_args import EXIT_USAGE, OneLineParser, exit_code_of
 from onboard.app.logs import setup_logging
 from onboard.core.errors import ConfigError, IrtrackError
 
@@ -714,3 +714,12 @@ def main(argv=None) -> int:
         return EXIT_ERROR
     except KeyboardInterrupt:  # Ctrl-C before a command's own handling took over (imports, set-up)
         return print_interrupted("nothing written")
+
+
+def entry() -> int:
+    """``python -m groundsim``'s exit code: :func:`main`'s, 141 without a traceback when the reader of its output
+    leaves (``... | head``; :func:`onboard.app.cli_args.exit_code_of`), and a command a signal stopped settled
+    (:func:`groundsim.io.stop_signals.settle_exit`)."""
+    from groundsim.io.stop_signals import settle_exit
+
+    return settle_exit(exit_code_of(main))
