@@ -684,6 +684,9 @@ class OnboardService:
             slow_streams = getattr(self.link, "slow_streams", None)
             if slow_streams is not None:
                 self.watchdog.stream_rates(now, slow_streams())
+            duplicate_senders = getattr(self.link, "duplicate_senders", None)
+            if duplicate_senders is not None:
+                self.watchdog.autopilot_duplicate(now, duplicate_senders())
             self.watchdog.utc(now, self.utc.mapping)
         video = next((t for t in self.taps if isinstance(t, VideoTap)), None)
         if video is not None and video.streamer is not None:

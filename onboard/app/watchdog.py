@@ -97,6 +97,14 @@ seconds, its own clock) and what it saw; tests feed it a fake clock.  Each condi
     (:class:`onboard.core.utc_clock.UtcClock`): ``time_unix_us`` carries a sigma that covers both readings until
     the next samples tell a wild sample from a UTC step; cleared when they do.
 
+``autopilot_duplicate``
+    On a ``udpin`` link, the followed autopilot's system and component id heartbeat from a second address while the
+    followed one is alive (heard within ``mavlink.heartbeat_timeout_s``): two vehicles with one MAVLink system id on
+    the daemon's port (both PX4 and ArduPilot default to 1), or one autopilot over two routes.  Everything from the
+    second address is refused (:class:`onboard.io.mavlink_link.MavlinkLink`); mixed, the two had made every line of
+    sight and 3-D position wrong.  The message names both addresses and the id.  Cleared when the second one has not
+    heartbeated for ``mavlink.heartbeat_timeout_s``.
+
 ``video_rate``
     The H.264 stream's camera runs at a rate other than ``video.fps`` by more than ``VIDEO_RATE_TOLERANCE``
     (20 %), measured from the frames' capture times (:attr:`onboard.io.video.VideoStreamer.camera_rate_hz`):
@@ -471,6 +479,25 @@ class Watchdog:
                 "what it can) or the link loses messages; poses are interpolated over wider gaps. Check the "
                 "autopilot's stream rate limits and the link (status link.streams)"
                 if slow
+                else ""
+            ),
+        )
+
+    def autopilot_duplicate(self, now_s: float, senders) -> None:
+        """The second senders of the autopilot's identity heard lately (a list of
+        :class:`~onboard.io.mavlink_link.DuplicateSender`, from the link; empty: none): warned once, naming each."""
+        self._hold(
+            "autopilot_duplicate",
+            "; ".join(
+                f"{d.other[0]}:{d.other[1]} heartbeats as MAVLink system {d.sysid} component {d.compid}, which "
+                f"{d.followed[0]}:{d.followed[1]} is and is followed"
+                for d in senders
+            )
+            + (
+                ": two vehicles with one system id on this port (or one autopilot over two routes); everything from "
+                "the second address is refused (rejected: autopilot_duplicate_refused). Give each vehicle its own "
+                "MAV_SYS_ID (PX4 MAV_SYS_ID, ArduPilot SYSID_THISMAV) or its own port"
+                if senders
                 else ""
             ),
         )

@@ -43,7 +43,9 @@ class MavlinkConfig:
     for ``lock_settle_s`` (first to latest heartbeat, no gap over ``heartbeat_timeout_s``) while no
     other system does so with two or more heartbeats (then nothing is locked and
     ``autopilot_ambiguous`` is counted: pin the id).  A stray heartbeat cannot win.  After the lock,
-    another system heartbeating as an autopilot is counted (``second_autopilot``), never followed.
+    another system heartbeating as an autopilot is counted (``second_autopilot``), never followed; on ``udpin``,
+    the followed system/component heartbeating from a second address while the first is alive (heard within
+    ``heartbeat_timeout_s``) is a second vehicle with the same id: refused and warned (``autopilot_duplicate``).
 
     ``gimbal_device_id``: the gimbal the camera is on (a gimballed mount), as CAMERA_INFORMATION names it:
     the gimbal device's component id, or 1-6 for a gimbal its manager (e.g. the autopilot) speaks for

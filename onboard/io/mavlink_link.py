@@ -69,9 +69,26 @@ log line at the default level:
 * ``gimbal_attitude_invalid``: a GIMBAL_DEVICE_ATTITUDE_STATUS whose quaternion is not a finite unit one; it
   neither picks the gimbal followed nor counts as a report for the watchdog's ``gimbal_mismatch``.
 
-Output goes only to the locked autopilot's address (the source of its latest heartbeat, ``udpin``)
+Output goes only to the locked autopilot's address (``udpin``: the address its heartbeats come from, below)
 or the fixed ``udpout`` address, plus ``extra_destinations``: a sender of garbage or of another
 system id never becomes a recipient.  Identity and MAVLink 2 signing: see :class:`MavlinkConfig`.
+
+One autopilot, one address (``udpin``): the autopilot is the first address its system/component heartbeats from.
+A heartbeat of that system/component from another address while the followed one is alive (its newest heartbeat
+within ``heartbeat_timeout_s``, the window the link calls it connected by) is a second sender: two vehicles with
+one system id on the port (PX4 and ArduPilot both default to 1), or one autopilot over two routes.  Mixed, the
+pose follows whichever spoke last (two clocks apart: every line of sight wrong) and the replies flip between them;
+so everything from that address is refused instead: counted ``autopilot_duplicate`` (its
+heartbeats; WARNING the first time, naming both addresses), ``autopilot_duplicate_refused`` (anything else, DEBUG),
+and listed by :meth:`MavlinkLink.duplicate_senders` for the watchdog's ``autopilot_duplicate``.  The autopilot
+component's own messages from an address its heartbeats do not come from are not used either
+(``autopilot_other_address``, DEBUG: a second sender before its first heartbeat, or a moved autopilot's first
+second); other components of its system (a gimbal on a socket of its own) are taken from any address.  An
+autopilot that moved (its old address silent for ``heartbeat_timeout_s``, so the link is lost, then heartbeats
+from a new one) is followed there (``autopilot_address_changed``): a move costs up to ``heartbeat_timeout_s`` of
+telemetry, a shorter window would hand the link to a second vehicle over a radio fade of the first.  A second
+sender heartbeating after the first fell silent that long is followed the same way (nothing tells it from a moved
+autopilot then; the count's log line says it was heard as a second sender).
 
 Link state: ``waiting`` (no autopilot heartbeat yet) -> ``connected`` -> ``lost`` (no heartbeat for
 ``heartbeat_timeout_s``) -> ``connected`` ...  :meth:`MavlinkLink.poll` never blocks and never
@@ -139,6 +156,7 @@ __all__ = [
     "MavlinkConfig",
     "MAX_OUTSTANDING_TIMESYNC",
     "LinkStatus",
+    "DuplicateSender",
     "MavlinkLink",
     "UdpTransport",
     "new_parser",
@@ -187,6 +205,8 @@ MAX_OUTSTANDING_TIMESYNC = 16
 #: how often (s) a ``tcp:`` connection under way is looked at: a main loop that sleeps on the link's descriptor has
 #: none to sleep on until the autopilot answers
 DIAL_POLL_S = 0.02
+#: second senders of the autopilot's identity remembered (the newest ones): their messages are refused
+MAX_DUPLICATE_SENDERS = 8
 #: a GPS_RAW_INT newer than this (s) says whether the receiver has a fix when SYSTEM_TIME would seed UTC
 UTC_FIX_FRESH_S = 5.0
 #: a TIMESYNC answer whose clock puts the autopilot's newest time_boot_ms further than this from where that
@@ -224,6 +244,19 @@ class LinkStatus:
     messages_refused: int = 0
     #: per requested stream (by message name): msg_id, requested_hz, measured_hz over the last seconds (None at first)
     streams: dict[str, dict[str, Any]] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class DuplicateSender:
+    """A second sender of the followed autopilot's identity on a ``udpin`` link (module docstring): ``other``
+    heartbeats as system ``sysid`` component ``compid`` while ``followed`` (the address the link follows) is alive.
+    ``heard_s``: its newest heartbeat, on the link's clock."""
+
+    sysid: int
+    compid: int
+    followed: tuple[str, int]
+    other: tuple[str, int]
+    heard_s: float
 
 
 @dataclass
@@ -340,6 +373,8 @@ class MavlinkLink:
         self._stream_parser = new_parser(self._signing)  # serial/TCP: one parser per stream (new on each open)
         self._mav = new_parser(self._signing, _Writer(self), self.config.autopilot_sysid or 1, self.config.component_id)
         self._candidates: dict[int, list] = {}  # unpinned lock: sysid -> [first_s, last_s, heartbeats]
+        #: udpin: addresses that heartbeat as the autopilot while the followed one is alive -> their newest one
+        self._duplicates: OrderedDict[tuple[str, int], DuplicateSender] = OrderedDict()
         self._next_open_s = -math.inf
         #: why the connection could not be opened the last time it was tried (None: open, or not tried yet)
         self.open_error: str | None = None
@@ -630,6 +665,8 @@ class MavlinkLink:
         if src_sys != self.autopilot_sysid:
             self._foreign(mtype, src_sys, src_comp)
             return
+        if addr is not None and self._not_from_peer(mtype, src_comp, addr):
+            return
         from_autopilot = src_comp == self.config.autopilot_compid
         if not from_autopilot and mtype in _AUTOPILOT_ONLY:
             self._foreign(mtype, src_sys, src_comp)
@@ -708,6 +745,58 @@ class MavlinkLink:
         used = "no autopilot followed yet" if ap_sys is None else f"only {ap_sys}/{ap_comp}'s is used"
         self._counters.count(reason, f"{what} from {whose}: {used}", level=logging.DEBUG)
 
+    def _peer_alive(self, now: float) -> bool:
+        """Whether the followed autopilot is alive: its newest heartbeat within ``heartbeat_timeout_s``, the window
+        the link calls it connected by (and the unpinned lock tells a gap by)."""
+        last = self._last_hb_rx_s
+        return last is not None and now - last <= self.config.heartbeat_timeout_s
+
+    def _duplicate(self, sysid: int, compid: int, followed, other, now: float) -> None:
+        """A heartbeat of the followed identity from ``other`` while ``followed`` is alive: a second sender (module
+        docstring), remembered so that all it sends is refused; counted, at WARNING the first time it is heard."""
+        new = other not in self._duplicates
+        self._duplicates[other] = DuplicateSender(sysid, compid, followed, other, now)
+        self._duplicates.move_to_end(other)
+        while len(self._duplicates) > MAX_DUPLICATE_SENDERS:
+            self._duplicates.popitem(last=False)
+        self._counters.count(
+            "autopilot_duplicate",
+            f"{other[0]}:{other[1]} heartbeats as autopilot {sysid}/{compid} too, which {followed[0]}:{followed[1]} "
+            "is: everything it sends is refused (autopilot_duplicate_refused); give each vehicle its own MAV_SYS_ID "
+            "or its own port",
+            level=logging.WARNING if new else logging.DEBUG,
+        )
+
+    def _not_from_peer(self, mtype: str, src_comp: int, addr) -> bool:
+        """Count and return True for a message of the autopilot's system that a ``udpin`` link does not take from
+        ``addr``: anything from a second sender of its identity, and the autopilot component's own messages from
+        an address its heartbeats do not come from (another component, a gimbal on its own socket, may have one)."""
+        t = self._transport
+        if not isinstance(t, UdpTransport) or t.kind != "udpin" or t.peer is None or addr == t.peer:
+            return False
+        if addr in self._duplicates:
+            self._counters.count(
+                "autopilot_duplicate_refused",
+                f"{mtype} from {addr[0]}:{addr[1]}, a second sender of autopilot {self.autopilot_sysid}'s identity",
+                level=logging.DEBUG,
+            )
+            return True
+        if src_comp != self.config.autopilot_compid:
+            return False
+        self._counters.count(
+            "autopilot_other_address",
+            f"{mtype} of autopilot {self.autopilot_sysid}/{src_comp} from {addr[0]}:{addr[1]}; its heartbeats come "
+            f"from {t.peer[0]}:{t.peer[1]}",
+            level=logging.DEBUG,
+        )
+        return True
+
+    def duplicate_senders(self) -> list[DuplicateSender]:
+        """The second senders of the autopilot's identity heard within ``heartbeat_timeout_s`` (the watchdog's
+        ``autopilot_duplicate``); empty when none."""
+        now = self._now()
+        return [d for d in self._duplicates.values() if now - d.heard_s <= self.config.heartbeat_timeout_s]
+
     def _on_heartbeat(self, msg, src_sys: int, src_comp: int, now: float, addr=None) -> None:
         if msg.autopilot == mavlink2.MAV_AUTOPILOT_INVALID or msg.type in _NOT_AUTOPILOT_TYPES:
             self._foreign(f"HEARTBEAT (MAV_TYPE {msg.type}, MAV_AUTOPILOT {msg.autopilot})", src_sys, src_comp)
@@ -730,8 +819,17 @@ class MavlinkLink:
             self._set_autopilot(src_sys)
         t = self._transport
         if addr is not None and isinstance(t, UdpTransport) and t.kind == "udpin" and t.peer != addr:
+            if t.peer is not None and self._peer_alive(now):
+                self._duplicate(src_sys, src_comp, t.peer, addr, now)
+                return
+            was_second = self._duplicates.pop(addr, None) is not None
             if t.peer is not None:
-                self._counters.count("autopilot_address_changed", f"system {src_sys}: {t.peer} -> {addr}")
+                # a second sender followed once the first fell silent may be the other vehicle, not a move: said so
+                self._counters.count(
+                    "autopilot_address_changed",
+                    f"system {src_sys}: {t.peer} -> {addr}"
+                    + (", which heartbeated as a second sender while the first was alive" if was_second else ""),
+                )
             else:
                 log.info("autopilot %d at %s:%d: our output goes there only", src_sys, *addr)
             t.peer = addr

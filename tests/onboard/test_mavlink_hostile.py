@@ -14,7 +14,8 @@ import pytest
 from pymavlink.dialects.v20 import common as mav
 
 from onboard.io.mavlink_link import LINK_CONNECTED, LINK_WAITING, MavlinkConfig
-from onboard.io.mavlink_wire import CameraTrackingGeoStatus
+from onboard.io.mavlink_wire import CameraTrackingGeoStatus, SystemTime
+from tests.fakes import FakeAutopilot
 from tests.onboard.test_mavlink_link import AP_SYSID, WAIT_S, Rig
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(60)]
@@ -122,9 +123,10 @@ def test_garbage_and_other_systems_never_receive_anything(rig, stranger):
 def test_replies_follow_the_locked_autopilot_only_when_it_heartbeats_from_a_new_address(rig, stranger):
     rig.connect()
     stranger.send(stranger.pack(attitude_msg(9_000), sysid=AP_SYSID))  # telemetry alone does not move the peer
-    rig.drive(lambda: False, timeout_s=0.1)
-    assert rig.link.peer_address[1] == rig.ap.conn.port.getsockname()[1]
-    stranger.send(stranger.pack(heartbeat_msg(), sysid=AP_SYSID))  # the autopilot moved (router restart)
+    assert rig.drive(lambda: rig.counters["autopilot_other_address"] == 1)  # nor is it used
+    assert rig.link.peer_address[1] == rig.ap.conn.port.getsockname()[1] and rig.pose.sizes()["attitude"] == 0
+    rig.clock.t_s += rig.link.config.heartbeat_timeout_s + 0.1  # the old address silent: the autopilot moved
+    stranger.send(stranger.pack(heartbeat_msg(), sysid=AP_SYSID))  # (a router restart)
     assert rig.drive(lambda: rig.counters["autopilot_address_changed"] == 1)
     assert rig.link.peer_address == stranger.sock.getsockname()
 
@@ -191,6 +193,74 @@ def test_pinned_sysid_locks_at_once_and_ignores_others():
     finally:
         s.close()
         r.close()
+
+
+@pytest.fixture
+def twin(rig):
+    """A second vehicle with the autopilot's system id, sending to the link's port from an address of its own."""
+    t = FakeAutopilot(rig.port, sysid=AP_SYSID, mav_type=mav.MAV_TYPE_FIXED_WING)
+    yield t
+    t.close()
+
+
+def address(ap) -> tuple[str, int]:
+    """Where the link hears ``ap`` from (its socket is bound to every interface and sends over loopback)."""
+    return ("127.0.0.1", ap.conn.port.getsockname()[1])
+
+
+def test_a_second_sender_of_the_autopilots_identity_is_refused_while_the_first_is_alive(rig, twin):
+    rig.connect()
+    rig.clock.t_s += 1.0
+    # the twin's telemetry first (before its heartbeat), then its heartbeat, then more of everything it sends
+    twin.attitude(9_300_000, [0.0, 1.0, 0.0, 0.0])  # upside down, 0.3 s ahead on its own clock
+    assert rig.drive(lambda: rig.counters["autopilot_other_address"] == 1)
+    twin.heartbeat()
+    assert rig.drive(lambda: rig.counters["autopilot_duplicate"] == 1)
+    twin.attitude(9_320_000, [0.0, 1.0, 0.0, 0.0])
+    twin.position(9_320_000, 47.5, 8.6, 900.0)
+    twin.send(SystemTime(1_800_000_000_000_000 + 9_320_000, 9_320_000))
+    for k in range(5):
+        rig.ap.attitude(9_000_000 + 20_000 * k, [1.0, 0.0, 0.0, 0.0])
+    assert rig.drive(lambda: rig.counters["autopilot_duplicate_refused"] == 3 and rig.pose.sizes()["attitude"] == 5)
+    assert rig.pose.sizes()["position"] == 0 and rig.link.utc_clock.mapping is None
+    # its next heartbeat, still within the followed one's heartbeat_timeout_s, moves nothing either
+    rig.clock.t_s += 3.9
+    twin.heartbeat()
+    assert rig.drive(lambda: rig.counters["autopilot_duplicate"] == 2)
+    assert rig.counters["autopilot_address_changed"] == 0
+    assert rig.link.peer_address == address(rig.ap) and rig.link.heartbeat_age_s() == pytest.approx(4.9)
+    (dup,) = rig.link.duplicate_senders()
+    assert (dup.sysid, dup.compid, dup.followed, dup.other) == (AP_SYSID, 1, address(rig.ap), address(twin))
+    # replies (heartbeats, TIMESYNC) stay with the first
+    rig.ap.heartbeat()
+    before = len(rig.ap.got("HEARTBEAT"))
+    rig.clock.t_s += 1.0
+    assert rig.drive(lambda: len(rig.ap.got("HEARTBEAT")) > before)
+    twin.pump()
+    assert twin.received == [] and rig.link.state == LINK_CONNECTED
+
+
+@pytest.mark.parametrize("heard_before", [False, True], ids=["new-address", "second-sender-before"])
+def test_the_autopilot_moved_after_its_address_went_silent_is_followed(rig, twin, heard_before):
+    rig.connect()
+    if heard_before:  # a second sender while the first was alive, then the first falls silent
+        twin.heartbeat()
+        assert rig.drive(lambda: rig.counters["autopilot_duplicate"] == 1)
+    rig.clock.t_s += rig.link.config.heartbeat_timeout_s + 0.1  # the first address silent past the timeout
+    rig.link.tick()
+    assert rig.counters["autopilot_lost"] == 1 and rig.link.duplicate_senders() == []
+    twin.heartbeat()
+    assert rig.drive(lambda: rig.counters["autopilot_address_changed"] == 1)
+    assert rig.link.peer_address == address(twin) and rig.link.state == LINK_CONNECTED
+    twin.attitude(9_000_000, [1.0, 0.0, 0.0, 0.0])
+    assert rig.drive(lambda: rig.pose.sizes()["attitude"] == 1)
+    assert rig.counters["autopilot_duplicate"] == int(heard_before) and rig.link.duplicate_senders() == []
+    # the old address back while the new one is alive is now the second sender
+    rig.ap.heartbeat()
+    assert rig.drive(lambda: rig.counters["autopilot_duplicate"] == 1 + int(heard_before))
+    assert rig.link.peer_address == address(twin)
+    (dup,) = rig.link.duplicate_senders()
+    assert (dup.followed, dup.other) == (address(twin), address(rig.ap))
 
 
 # --------------------------------------------------------------------------- bounded memory
@@ -294,7 +364,7 @@ def test_signed_link_refuses_unsigned_v1_wrong_key_and_replayed_packets(signed_r
     stranger.send(bytes(attitude_msg(9_010).pack(v1, force_mavlink1=True)))  # MAVLink 1 (downgrade, CVE-2020-10283)
     stranger.send(_signed(attitude_msg(9_020), OTHER_KEY, now_ts + 10**9))  # unknown key, far-future stamp
     good = _signed(attitude_msg(9_030), KEY, now_ts + 100)
-    stranger.send(good)
+    r.ap.raw(good)
     assert r.drive(lambda: r.pose.sizes()["attitude"] == 1)  # only the genuine one, despite the future-stamped forgery
     stranger.send(good)  # replayed verbatim
     stranger.send(

@@ -314,3 +314,20 @@ def test_stream_rate_low_names_the_message_and_both_rates_once(caplog):
     assert sum("stream_rate_low" in r.getMessage() and r.levelno == logging.WARNING for r in caplog.records) == 1
     wd.stream_rates(22.0, [])
     assert wd.active == ()
+
+
+def test_autopilot_duplicate_names_both_addresses_and_the_id_once(caplog):
+    from onboard.io.mavlink_link import DuplicateSender
+
+    wd = _wd()
+    dup = DuplicateSender(1, 1, ("10.0.0.5", 14580), ("10.0.0.6", 14580), 20.0)
+    with caplog.at_level(logging.INFO):
+        for k in range(10):  # raised and held while the second sender is heard, whatever its telemetry does
+            wd.autopilot_duplicate(20.0 + k, [dup])
+    (w,) = wd.active
+    assert w.code == "autopilot_duplicate"
+    assert "10.0.0.6:14580 heartbeats as MAVLink system 1 component 1, which 10.0.0.5:14580 is" in w.message
+    assert "MAV_SYS_ID" in w.message and "own port" in w.message
+    assert sum("autopilot_duplicate" in r.getMessage() and r.levelno == logging.WARNING for r in caplog.records) == 1
+    wd.autopilot_duplicate(31.0, [])
+    assert wd.active == ()
