@@ -292,10 +292,11 @@ class Fusion:
                     f"{v}: two vehicles publish as {v!r} (its tracks' seq / time_boot_us go back and forth, or its "
                     "camera jumps farther than a vehicle flies); its lines of sight are kept out of the fusion while "
                     "this lasts: give each vehicle its own name (the daemon's 'vehicle' setting)",
+                    subject=v,
                 )
                 self.tracker.withdraw(v, "name clash")
         for v in sorted(self._clashing - set(clashing)):
-            self.counter.count("name_clash_cleared", f"{v}: one stream again", level=logging.INFO)
+            self.counter.count("name_clash_cleared", f"{v}: one stream again", level=logging.INFO, subject=v)
         self._clashing = set(clashing)
         return clashing
 
@@ -326,6 +327,7 @@ class Fusion:
             "clock_step",
             f"{key}: its time_unix_us stepped by {step_s * 1e3:+.1f} ms against its time_boot_us; its lines of sight "
             "carry that much time sigma until the clock check has judged its new UTC; check its UTC (SYSTEM_TIME)",
+            subject=vehicle,
         )
         self.clock_check.forget(vehicle)
         self._stepped[vehicle] = step_s
@@ -502,7 +504,7 @@ class Fusion:
         self._last_arrival[vehicle] = arrival_unix_s
         if vehicle in self._silent:
             self._silent.discard(vehicle)
-            self.counter.count("vehicle_back", f"{vehicle}: tracks again", level=logging.INFO)
+            self.counter.count("vehicle_back", f"{vehicle}: tracks again", level=logging.INFO, subject=vehicle)
         return True
 
     def _reanchor_if_alone(self, vehicle: str, origin: GeodeticOrigin, now_unix_s: float) -> None:
@@ -543,7 +545,7 @@ class Fusion:
 
     def _forget_vehicle(self, v: str, why: str) -> None:
         """Drop what is kept for vehicle ``v`` (``vehicle_forgotten``, saying ``why``)."""
-        self.counter.count("vehicle_forgotten", f"{v}: {why}", level=logging.INFO)
+        self.counter.count("vehicle_forgotten", f"{v}: {why}", level=logging.INFO, subject=v)
         for kept in (
             self._last_arrival,
             self._time_sources,
@@ -617,7 +619,7 @@ class Fusion:
             live = sorted(set(self._last_arrival) - silent)
             rest = f"fusing {', '.join(live)}" if live else "no vehicle left: nothing is fused until one is heard again"
             self.counter.count(
-                "vehicle_silent", f"{v}: no track for {now_unix_s - self._last_arrival[v]:.1f} s; {rest}"
+                "vehicle_silent", f"{v}: no track for {now_unix_s - self._last_arrival[v]:.1f} s; {rest}", subject=v
             )
         self._silent = silent
         devs = self.clock_check.deviations_s(now_unix_s)
@@ -630,6 +632,7 @@ class Fusion:
                     "clock_inconsistent",
                     f"{v}: its frames' shortest arrival lag is {floors[v] * 1e3:.1f} ms (others: {others} ms): its "
                     "time_unix_us is off; check its UTC (SYSTEM_TIME) mapping",
+                    subject=v,
                 )
         self._clock_flagged = set(flagged)
         self._check_clashes(now_unix_s)
@@ -823,7 +826,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="name a vehicle whose UTC is this far off (10)",
     )
     p.add_argument(
-        "--reject-log-interval-s", type=_positive, default=10.0, help="log each reason at most this often (10)"
+        "--reject-log-interval-s",
+        type=_positive,
+        default=10.0,
+        help="log each reason at most this often; a vehicle's own events (silent, back, clock, name clash) per vehicle (10)",
     )
     p.add_argument(
         "--attitude-bias-deg", type=_attitude_bias_deg, default=0.1, help="attitude bias prior, 1 sigma (0.1)"

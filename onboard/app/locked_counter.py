@@ -19,9 +19,9 @@ class LockedCounter(RejectCounter):
         super().__init__(*args, **kwargs)
         self._lock = threading.Lock()
 
-    def count(self, reason: str, detail: str = "", n: int = 1, level: int = logging.WARNING) -> None:
+    def count(self, reason: str, detail: str = "", n: int = 1, level: int = logging.WARNING, subject: str = "") -> None:
         with self._lock:
-            super().count(reason, detail, n, level=level)
+            super().count(reason, detail, n, level=level, subject=subject)
 
     @property
     def counts(self) -> dict[str, int]:

@@ -20,9 +20,13 @@ __all__ = ["RejectCounter"]
 
 log = logging.getLogger(__name__)
 
+#: (reason, subject) pairs remembered before those whose interval has passed are forgotten
+MAX_LOG_KEYS = 1024
+
 
 class RejectCounter:
-    """Counts by reason; logs each reason at most once per ``log_interval_s`` (with the count since).
+    """Counts by reason; logs each reason (and subject, when the caller names one) at most once per
+    ``log_interval_s`` (with the count since).
 
     ``count(reason, detail)`` never raises.  ``counts`` is a copy of the reason -> count dict.
     """
@@ -39,26 +43,44 @@ class RejectCounter:
         self._clock = clock
         self._log = logger or log
         self._counts: dict[str, int] = {}
-        self._last_log_s: dict[str, float] = {}
-        self._unlogged: dict[str, int] = {}
+        # the log interval is kept per (reason, subject): subject "" unless the caller names one
+        self._last_log_s: dict[tuple[str, str], float] = {}
+        self._unlogged: dict[tuple[str, str], int] = {}
 
-    def count(self, reason: str, detail: str = "", n: int = 1, level: int = logging.WARNING) -> None:
-        """Count ``n`` of ``reason``; log it at ``level`` (WARNING: a rejection; DEBUG: a normal event)."""
+    def count(self, reason: str, detail: str = "", n: int = 1, level: int = logging.WARNING, subject: str = "") -> None:
+        """Count ``n`` of ``reason``; log it at ``level`` (WARNING: a rejection; DEBUG: a normal event).
+
+        ``subject`` (a vehicle's name): the log interval is kept per reason and subject, so that one vehicle's
+        event does not hide another's within the interval (the fusion's ``vehicle_silent`` of a second vehicle, or
+        its ``clock_inconsistent`` naming the right vehicle after a wrong one, were never logged); the count is the
+        reason's either way."""
         self._counts[reason] = self._counts.get(reason, 0) + n
         try:
             now = float(self._clock())
         except Exception:  # a broken clock must not break the caller
             now = math.nan
-        last = self._last_log_s.get(reason)
+        key = (reason, subject)
+        last = self._last_log_s.get(key)
         if last is None or not now - last < self.log_interval_s:
-            since = self._unlogged.get(reason, 0) + n
+            since = self._unlogged.get(key, 0) + n
             self._log.log(
                 level, "%s: %s (total %d, %d since last report)", reason, detail or "-", self._counts[reason], since
             )
-            self._last_log_s[reason] = now
-            self._unlogged[reason] = 0
+            if subject and len(self._last_log_s) >= MAX_LOG_KEYS:
+                self._prune(now)
+            self._last_log_s[key] = now
+            self._unlogged[key] = 0
         else:
-            self._unlogged[reason] = self._unlogged.get(reason, 0) + n
+            self._unlogged[key] = self._unlogged.get(key, 0) + n
+
+    def _prune(self, now: float) -> None:
+        """Forget the subjects whose interval has passed with nothing left unlogged: their next event is logged
+        whether remembered or not, and names that come and go (vehicles forgotten, new ones) must not grow the
+        dicts for the life of the process."""
+        for key in [k for k, t in self._last_log_s.items() if not now - t < self.log_interval_s]:
+            if not self._unlogged.get(key):
+                del self._last_log_s[key]
+                self._unlogged.pop(key, None)
 
     def __getitem__(self, reason: str) -> int:
         return self._counts.get(reason, 0)

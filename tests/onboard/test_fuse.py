@@ -559,6 +559,13 @@ def test_a_vehicle_that_stops_is_named_silent_and_rejoins_when_it_returns(caplog
     assert fusion.counter["vehicle_silent"] == 1
     # it names who is still fused (it said 'fusing the others' when none was left)
     assert any("uav2: no track for" in r.getMessage() and "fusing uav1" in r.getMessage() for r in caplog.records)
+    both = new_fusion(silent_after_s=1.0)  # both stop within the log interval: each is named in the log
+    for v in (UAV1, UAV2):
+        both.receive(f"irtrack/{v.name}/track", payload_of(v, 0.0, rng, 0), T0_UNIX_S + 0.005)
+    caplog.clear()
+    both.watch(T0_UNIX_S + 2.0)
+    silent = [r.getMessage() for r in caplog.records if r.getMessage().startswith("vehicle_silent")]
+    assert [m.split(":")[1].strip() for m in silent] == ["uav1", "uav2"]
     lone = new_fusion(silent_after_s=1.0)  # a fleet whose only vehicle stops
     lone.receive("irtrack/uav1/track", payload_of(UAV1, 0.0, rng, 0), T0_UNIX_S + 0.005)
     lone.watch(T0_UNIX_S + 2.0)
