@@ -844,8 +844,10 @@ class SetpointGate:
         if not accepting:
             if was_sending:
                 self.why = "the autopilot left the accepting mode"
-            else:
+            elif self.state != "not_accepting":
                 self.why = "the autopilot is not in the accepting mode"
+            # else: still out of the mode; why keeps what it said when the vehicle left it (the pilot took it back, or
+            # the re-arm after a stop), which the 1 Hz status would otherwise show for one setpoint step in four
             self.state = "not_accepting"
             self._brake_until_s = -math.inf  # the pilot's: nothing more is sent
             return SetpointDecision(False, None, self.state, self.why)

@@ -343,6 +343,28 @@ def test_setpoint_gate_sends_only_in_the_accepting_mode_and_latches_a_stop_until
     assert off.step(0.0, link_connected=True, mode=GUIDED, pose=inside, advice=advice).state == "off"
 
 
+def test_the_gate_says_the_pilot_left_the_mode_for_as_long_as_the_vehicle_stays_out_of_it():
+    from onboard.estimation.guidance import SetpointGate
+
+    gate = SetpointGate(build(GuidanceConfig, {"enabled": True, "geofence_north_m": [-100.0, 100.0]}))
+    inside = (0.0, np.array([0.0, 0.0, -60.0]), np.array([0.0, 5.0, 0.0]))
+    advice = (100.0, np.array([3.0, 4.0, 0.0]))
+
+    def step(now, mode=GUIDED):
+        return gate.step(now, link_connected=True, mode=mode, pose=(now, *inside[1:]), advice=advice)
+
+    assert step(0.0, mode=LOITER).why == "the autopilot is not in the accepting mode"  # never handed over
+    assert step(0.25).send
+    # the pilot switched to LOITER mid-manoeuvre: the status (1 Hz) must still say so at the setpoint steps after
+    # the first (4 Hz), not read as if the vehicle had never been handed over
+    for t in (0.5, 0.75, 1.0, 5.0):
+        d = step(t, mode=LOITER)
+        assert not d.send and d.state == "not_accepting" and d.why == "the autopilot left the accepting mode"
+    assert step(5.25).send and gate.why == ""  # back in the mode: the pilot's hand-over again
+    step(5.5, mode=(3, 128 | 1, 9))  # then another mode: left again
+    assert step(5.75, mode=LOITER).why == "the autopilot left the accepting mode"
+
+
 def test_setpoint_gate_refuses_a_disarmed_or_foreign_autopilot_and_an_old_pose():
     from onboard.estimation.guidance import SetpointGate
 
