@@ -288,6 +288,10 @@ def test_a_valid_packet_is_decoded_whatever_garbage_surrounds_it(before, after, 
             n, added, _ = h.feed(framing(pkt), sender)
             assert ("attitude", t_ms * 1000, True) in h.pose.calls, (added, h.pose.calls[-3:])
 
+        # the autopilot heartbeats, as any does: the garbage may hold a valid heartbeat of its identity from another
+        # address, a second sender then (refused), not the autopilot the link follows
+        quadrotor = mav.MAVLink_heartbeat_message(2, mav.MAV_AUTOPILOT_PX4, 0, 0, mav.MAV_STATE_ACTIVE, 3)
+        h.feed(bytes(quadrotor.pack(p)), sender)
         genuine()
         for g in before:
             h.feed(g, garbage_sender)
