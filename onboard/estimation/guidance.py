@@ -700,6 +700,8 @@ _MODE_FLAG_ARMED = 128
 #: silence: the autopilot's own timeout)
 BRAKE_S = 1.0
 #: why the gate has no pose to judge: its pose is the one each camera frame got
+#: an autopilot heartbeat (1 Hz) older than this is late: the link, not the camera, is named when the poses stop
+HEARTBEAT_LATE_S = 1.5
 _NO_FRAME_POSE = "no camera frame with a measured vehicle position (no frames, none with a pose, or dead reckoning)"
 
 
@@ -826,6 +828,9 @@ class SetpointGate:
                 )
             self._link_was_up = True
         if self.state == "stopped":
+            if not link_up and self.why.startswith("pose_lost") and "heartbeat" not in self.why:
+                # the poses stopped first, then the heartbeat too: the link it was, said where the status shows it
+                self.why += " (then no autopilot heartbeat either: the MAVLink link)"
             if link_up and not accepting:  # the pilot took the vehicle back: re-arm the gate
                 self._brake_until_s = -math.inf
                 self.state, self.why = "not_accepting", "the autopilot left the accepting mode after a stop"
@@ -856,7 +861,14 @@ class SetpointGate:
         # (the advice in force is about a target no longer seen); a stamp that is not a number is not a recent one
         if pose is None or not now_s - pose[0] <= self.config.pose_timeout_s:
             if was_sending:
-                return self._stop(f"pose_lost: {_NO_FRAME_POSE} within guidance.pose_timeout_s", brake)
+                # a link gone quiet loses the frames' poses before its heartbeat times out: said, so that the link is
+                # looked at rather than the camera (the stop stays latched under this reason)
+                quiet = (
+                    f" (and no autopilot heartbeat for {heartbeat_age_s:.1f} s: the MAVLink link)"
+                    if heartbeat_age_s > HEARTBEAT_LATE_S
+                    else ""
+                )
+                return self._stop(f"pose_lost: {_NO_FRAME_POSE} within guidance.pose_timeout_s{quiet}", brake)
             self.state, self.why = "waiting", _NO_FRAME_POSE
             return SetpointDecision(False, None, self.state, self.why)
         limit = self._limit(np.asarray(pose[1], float), np.asarray(pose[2], float))

@@ -742,6 +742,27 @@ def test_a_camera_gap_stops_the_setpoints_saying_so_and_a_pose_stamp_that_is_not
     assert not d.send and d.state == "waiting" and d.why.startswith("no camera frame")
 
 
+def test_poses_lost_with_the_heartbeat_late_name_the_link_not_only_the_camera():
+    """MAVLink gone both ways for 3 s: the frames lost their poses (pose_lost) before the heartbeat timed out, and the
+    latched reason pointed at the camera alone (a fault-injection audit)."""
+    from onboard.estimation.guidance import SetpointGate
+
+    p = np.array([0.0, 0.0, -60.0])
+    advice = (10.0, np.array([3.0, 0.0, 0.0]))
+    for age_s, says_link in ((0.4, False), (1.8, True)):
+        gate = SetpointGate(build(GuidanceConfig, {"enabled": True}))
+        gate.step(0.0, link_connected=True, mode=LOITER, pose=None, advice=None)
+        assert gate.step(0.1, link_connected=True, mode=GUIDED, pose=(0.1, p, np.zeros(3)), advice=advice).send
+        d = gate.step(1.5, link_connected=True, mode=GUIDED, pose=(0.1, p, np.zeros(3)), advice=advice,
+                      heartbeat_age_s=age_s)  # fmt: skip
+        assert d.why.startswith("pose_lost: no camera frame"), d.why
+        assert ("no autopilot heartbeat for 1.8 s: the MAVLink link" in d.why) == says_link, d.why
+        # the heartbeat times out after: the latched reason says so, once
+        for t_s in (2.0, 2.5):
+            d = gate.step(t_s, link_connected=True, mode=GUIDED, pose=None, advice=advice, heartbeat_age_s=3.0)
+        assert d.why.count("heartbeat") == 1 and "MAVLink link" in d.why, d.why
+
+
 def _ranging_track(**kw):
     """A track at 135, 50, -80 m NED whose range sigma is half its range (a manoeuvre helps: advice is planned)."""
     p = np.array([135.0, 50.0, -80.0])
