@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
+
 
 def _rebuild(cls: type[IrtrackError], args: tuple) -> IrtrackError:
     """An error of ``cls`` holding ``args``, made without its ``__init__`` (see :meth:`IrtrackError.__reduce__`)."""
@@ -25,6 +27,17 @@ class IrtrackError(Exception):
 
 class InputError(IrtrackError, ValueError):
     """Input data (file, message, payload) is malformed; the message names where."""
+
+
+def wrong_sizes(*expected: tuple[str, Any, int]) -> str:
+    """``"<name> has N values, expected M"`` for each ``(name, value, M)`` whose value (a sequence or an array) does
+    not hold M values, joined by ``"; "``: the text of the InputError a step method raises for arguments of the wrong
+    size (numpy's own reshape error names none)."""
+    return "; ".join(
+        f"{name} has {np.size(value)} values, expected {size}"
+        for name, value, size in expected
+        if np.size(value) != size
+    )
 
 
 class ConfigError(IrtrackError, ValueError):

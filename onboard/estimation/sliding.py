@@ -76,7 +76,7 @@ from typing import Annotated
 import numpy as np
 import scipy.linalg as sla
 
-from onboard.core.errors import InputError
+from onboard.core.errors import InputError, wrong_sizes
 from onboard.core.frames import FrameError, PinholeIntrinsics, check_unit_quat, far_off_image, rotmat_from_quat
 from onboard.core.schema import NOT_A_KEY, Bool, Integer, Invalid, Number, config_dataclass
 from onboard.estimation.consistency import (
@@ -518,18 +518,10 @@ class SlidingWindowEstimator:
             p = np.asarray(p_cam_ned_m, dtype=float).reshape(3)
             q = np.asarray(q_ned_from_cam, dtype=float).reshape(4)
         except ValueError:  # a wrong size (numpy's reshape error names no argument): the refusal names them
-            wrong = [
-                f"{name} has {np.size(value)} values, expected {size}"
-                for name, value, size in (
-                    ("uv_px", uv_px, 2),
-                    ("p_cam_ned_m", p_cam_ned_m, 3),
-                    ("q_ned_from_cam", q_ned_from_cam, 4),
-                )
-                if np.size(value) != size
-            ]
-            raise InputError(
-                f"SlidingWindowEstimator.add: {'; '.join(wrong) or 'an argument is not numbers'}"
-            ) from None
+            wrong = wrong_sizes(
+                ("uv_px", uv_px, 2), ("p_cam_ned_m", p_cam_ned_m, 3), ("q_ned_from_cam", q_ned_from_cam, 4)
+            )
+            raise InputError(f"SlidingWindowEstimator.add: {wrong or 'an argument is not numbers'}") from None
         if not (math.isfinite(t) and np.all(np.isfinite(uv)) and np.all(np.isfinite(p)) and np.all(np.isfinite(q))):
             bad = [
                 name

@@ -78,7 +78,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from onboard.core.checks import is_positive_number, require_each
-from onboard.core.errors import InputError
+from onboard.core.errors import InputError, wrong_sizes
 from onboard.core.frames import quat_conjugate, quat_multiply, rotmat_from_quat, rotvec_from_quat
 
 __all__ = [
@@ -288,17 +288,13 @@ class TimeOffsetEstimator:
             or np.size(q_ned_from_cam) != 4
             or np.size(p_cam_ned_m) != 3
         ):
-            wrong = [
-                f"{name} has {np.size(value)} values, expected {size}"
-                for name, value, size in (
-                    ("bearing_cam", bearing_cam, 3),
-                    ("q_ned_from_cam", q_ned_from_cam, 4),
-                    ("p_cam_ned_m", p_cam_ned_m, 3),
-                    ("v_cam_ned_mps", v_cam_ned_mps, 3),
-                )
-                if np.size(value) != size
-            ]
-            raise InputError(f"TimeOffsetEstimator.add: {'; '.join(wrong)}")
+            wrong = wrong_sizes(
+                ("bearing_cam", bearing_cam, 3),
+                ("q_ned_from_cam", q_ned_from_cam, 4),
+                ("p_cam_ned_m", p_cam_ned_m, 3),
+                ("v_cam_ned_mps", v_cam_ned_mps, 3),
+            )
+            raise InputError(f"TimeOffsetEstimator.add: {wrong}")
         r = self.params.default_range_m if range_m is None else float(range_m)
         if not (math.isfinite(t) and np.isfinite(row).all()):
             # named only here, once something is wrong: the check above stays one call per frame
