@@ -50,7 +50,7 @@ step over 30, or a last number over 100 times the frame count plus 100 000) are 
 1, with a WARNING.  Otherwise frames are numbered by their sorted position from 1: an INFO
 line says so, a WARNING when most names are numbered (a stray image among the frames is tracked as one).
 Frame K is taken ``(K - 1) / fps`` seconds after the first, so the tracks are predicted over a gap as over frames
-the daemon drops; ``--fps`` (or the video's or ``seqinfo.ini``'s rate) sets that time.
+the daemon drops (over more missing frames than a track coasts, 45, every track is lost); ``--fps`` (or the video's or ``seqinfo.ini``'s rate) sets that time.
 
 Frames must be at least 16 x 16 pixels (the chain's smallest) and of one size: a folder or a video whose frame
 size changes is refused at the first frame that differs.  A video that decodes with errors (damage the decoder

@@ -39,7 +39,9 @@ object.  The primary's centre is refined by
 :func:`onboard.imaging.detect.measure_blob` (the windowed sub-pixel centroid on the raw frame).
 
 Flat-field events: a frozen frame (identical to the previous one) measures nothing (tracks predicted,
-no miss counted); an offset step restarts the defect map.
+no miss counted); an offset step restarts the defect map.  Frames missing (the frames' times, ``time_boot_us``):
+a track is predicted over a short gap as over frozen frames; a gap longer than ``coast_frames`` loses every track
+(the next frames acquire afresh).
 """
 
 from __future__ import annotations
@@ -89,7 +91,7 @@ from onboard.imaging.objects_model import (
     unit_vector,
 )
 from onboard.imaging.preprocess import ImagingParams, check_frame
-from onboard.imaging.tbd import TbdParams, TrackBeforeDetect, frame_steps
+from onboard.imaging.tbd import TbdParams, TrackBeforeDetect, frame_periods, frame_steps
 
 __all__ = [
     "GREY16_PER_GREY8",
@@ -151,6 +153,8 @@ class ObjectTracker:
         self.primary_changes = 0
         self.frozen_frames = 0
         self.offset_steps = 0
+        # gaps in the frames' times longer than a track coasts, over which every track was lost (_forget_after_gap)
+        self.gap_losses = 0
         im = self.imaging
         tbd = TbdParams(
             threshold_sigma=im.tbd_threshold_sigma,
@@ -342,7 +346,10 @@ class ObjectTracker:
         image = check_frame(image)
         self._frame_index += 1
         self.frame_steps = frame_steps(self._last_time_us, time_boot_us, self.frame_rate_hz)
+        gap_periods = frame_periods(self._last_time_us, time_boot_us, self.frame_rate_hz)
         self._last_time_us = time_boot_us
+        if round(gap_periods) - 1 > self.params.coast_frames:  # frames missing before this one
+            self._forget_after_gap(gap_periods / self.frame_rate_hz)
         for t in (t for t in self._tracks if 2 * t.dim_hits < t.hits):  # dropped frames (see tbd.frame_steps)
             t.los = unit_vector(t.los + (self.frame_steps - 1) * t.rate)
         if not callable(R_ned_from_cam):
@@ -389,6 +396,29 @@ class ObjectTracker:
         out = self._output(image, R, event, measured, changed)
         self.stages.lap("primary, output")
         return out
+
+    def _forget_after_gap(self, gap_s: float) -> None:
+        """More frames missing before this one than a track may coast (``coast_frames``): every track is lost and
+        the next frames acquire afresh, as if those frames had come without a detection.  A gap counts as at most
+        ``MAX_FRAME_STEPS`` periods of prediction and one miss (dropped frames on a loaded computer), so a
+        primary kept over a long gap (the camera's stream paused for seconds) was predicted a second along its
+        rate, tens of pixels off its object, and stayed the primary while it coasted: no other track could be
+        chosen meanwhile, track-before-detect (which searches only without a primary) stayed idle, and aided
+        detection in its widened gate measured it on noise now and then, so it coasted on.  A target under the
+        whole-frame threshold, held until then by its track alone, was never found again.  Track-before-detect's
+        integration and the detector's kept frames (the background difference's and the background motion's,
+        counted in frames) are of that other time too."""
+        self.gap_losses += 1
+        log.info(
+            "frame %d: %.2f s since the last frame, longer than a track coasts (%d frames): every track lost",
+            self._frame_index,
+            gap_s,
+            self.params.coast_frames,
+        )
+        self.clear_tracks()
+        if self.tbd is not None:
+            self.tbd.reset()
+        self.detector.forget_frames()
 
     @staticmethod
     def _rotation(R_ned_from_cam) -> np.ndarray:

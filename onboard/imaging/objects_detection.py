@@ -134,6 +134,14 @@ class ObjectDetector:
             self._defects.reset()
         self._stripes = None
 
+    def forget_frames(self) -> None:
+        """A gap in the frames: the frames and poses kept are forgotten.  They are counted in frames, so across
+        the gap a background difference would be taken against a frame seconds old and a background motion
+        divided by the frames between, not the time."""
+        self._recent = []
+        self._poses, self._smalls, self._motions = {}, {}, {}
+        self._registered = None
+
     def detect(self, image: np.ndarray, frame_index: int) -> list[PointCandidate]:
         """Frame ``frame_index``'s point candidates (fixed pattern handled first; updates the defect map)."""
         self.frame_index = frame_index

@@ -359,3 +359,52 @@ def test_the_stages_report_beside_its_primary_is_the_primarys_measurement_even_b
             assert out.primary_id in measured and prim.hits == hits + 1 and len(tr._tracks) == n_tracks
         else:
             assert out.primary_id not in measured and prim.hits == hits and len(tr._tracks) == n_tracks + 1
+
+
+def test_every_track_is_lost_over_a_gap_in_the_frames_longer_than_a_coast():
+    """A bright point held as the primary; the camera's stream pauses 7 s (the frames' times say so) and the point
+    comes back dim (2.4 NETD: under the single-frame threshold, found by track-before-detect) elsewhere near the
+    centre.  The tracks, unmeasured for longer than they may coast, are lost at the gap: the stage searches, and the
+    point is the primary again about a second later (31 frames).  Kept, the primary was predicted a second along its
+    old rate, 23 px from the point, and coasted there, so the stage (which searches only without a primary) stayed
+    idle and no other track could be chosen: not found within the 45 frames (P1's target at 370 m after a 7 s
+    pause was never found again)."""
+    rng = np.random.default_rng(12)
+    period_us = 33_333
+    tr = ObjectTracker(K, imaging=ImagingParams(chain="objects"))
+    for k in range(40):
+        out = tr.update(_frame(rng, [(60.0 + 0.5 * k, 64.0)], peak_netd=20.0), R_MOUNT, 1_000_000 + k * period_us)
+    before = out.primary_id
+    assert before is not None and tr.gap_losses == 0
+    t0_us = 1_000_000 + 39 * period_us + 7_000_000
+    truth = [(72.0 + 0.1 * k, 52.0) for k in range(45)]  # at most coast_frames: a kept primary still coasts
+    found = None
+    for k, uv in enumerate(truth):
+        out = tr.update(_frame(rng, [uv]), R_MOUNT, t0_us + k * period_us)
+        prim = next((o for o in out.objects if o.object_id == out.primary_id), None)
+        if found is None and prim is not None and math.hypot(prim.u_px - uv[0], prim.v_px - uv[1]) <= 3.0:
+            found = k
+    assert found is not None and found <= 36, found  # 31 frames
+    assert tr.gap_losses == 1 and out.primary_id not in (None, before)
+
+
+@pytest.mark.parametrize("missing", [45, 46])
+def test_a_gap_loses_the_tracks_only_past_the_coast(missing):
+    """``coast_frames`` (45) frames missing: the track is predicted over them as before and measured again under its
+    id; one more and every track is lost.  The detector's frames kept for the background difference and motion,
+    counted in frames, are forgotten with them."""
+    rng = np.random.default_rng(13)
+    period_us = 33_333
+    tr = ObjectTracker(K, imaging=ImagingParams(chain="objects", tbd=False))
+    assert tr.params.coast_frames == 45
+    for k in range(20):
+        out = tr.update(_frame(rng, [(80.0, 64.0)], peak_netd=20.0), R_MOUNT, 1_000_000 + k * period_us)
+    ids = {o.object_id for o in out.confirmed}
+    assert len(ids) == 1 and len(tr.detector._recent) > 1
+    t_us = 1_000_000 + (19 + missing + 1) * period_us
+    out = tr.update(_frame(rng, [(80.0, 64.0)], peak_netd=20.0), R_MOUNT, t_us)
+    if missing <= tr.params.coast_frames:
+        assert tr.gap_losses == 0 and {o.object_id for o in out.confirmed} == ids
+    else:
+        assert tr.gap_losses == 1 and not out.confirmed and out.primary_id is None
+        assert [k for k, _ in tr.detector._recent] == [out.frame_index]
