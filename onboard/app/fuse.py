@@ -402,16 +402,21 @@ class Fusion:
         # hundreds of ms, a ray that far off in time pairs with the others' at the wrong place)
         t_s, source = reading.t_s - track.compensated_us * 1e-6, reading.source
         if t_s < arrival_unix_s - self.max_age_s:
-            self.counter.count("stale", f"{key}: frame {arrival_unix_s - t_s:.3f} s old ({source} time)")
+            self.counter.count(
+                "stale", f"{key}: frame {arrival_unix_s - t_s:.3f} s old ({source} time)", subject=vehicle
+            )
             return
         if t_s > arrival_unix_s + self.max_age_s:
-            self.counter.count("future", f"{key}: frame {t_s - arrival_unix_s:.3f} s ahead ({source} time)")
+            self.counter.count(
+                "future", f"{key}: frame {t_s - arrival_unix_s:.3f} s ahead ({source} time)", subject=vehicle
+            )
             return
         if reading.held_jump_s is not None:  # timed by a clock the vehicle may not have: a glitch timed it wrong
             self.counter.count(
                 "stamp_jump",
                 f"{key}: its time_unix_us puts UTC - boot {reading.held_jump_s * 1e3:+.1f} ms off the vehicle's "
                 "recent stamps: held out until its next stamps say whether its clock stepped",
+                subject=vehicle,
             )
             return
         # the fleet's frame is the first accepted ray's origin: a message refused below must not set it (a stray
@@ -447,7 +452,9 @@ class Fusion:
             return
         if implausible is not None:
             where = np.round(ray.p_cam_ned_m, 1).tolist()
-            self.counter.count(implausible, f"{key}: camera at {where} m in the fleet frame (seq {track.seq})")
+            self.counter.count(
+                implausible, f"{key}: camera at {where} m in the fleet frame (seq {track.seq})", subject=vehicle
+            )
             if implausible == "camera_far":
                 self._reanchor_if_alone(vehicle, track.origin, arrival_unix_s)
             return
@@ -459,6 +466,7 @@ class Fusion:
                     "clock_off",
                     f"{key}: the clock check finds its time_unix_us {off * 1e3:+.0f} ms off the other vehicles', "
                     "beyond the pairing window",
+                    subject=vehicle,
                 )
                 if vehicle not in self._clock_refused:  # what it sent before it was judged goes too
                     self._clock_refused.add(vehicle)
@@ -573,6 +581,7 @@ class Fusion:
                 "time_sigma",
                 f"{key}: a time sigma of {ray.time_sigma_s * 1e3:.1f} ms ({time_sigma_why}) > --max-time-sigma-ms "
                 f"{self.max_time_sigma_s * 1e3:g}",
+                subject=key,
             )
             return False
         if min(ray.sigma_az_rad, ray.sigma_el_rad) < MIN_BEARING_SIGMA_RAD:
@@ -580,6 +589,7 @@ class Fusion:
                 "sigma_below_floor",
                 f"{key}: line-of-sight sigma {min(ray.sigma_az_rad, ray.sigma_el_rad):.3g} rad "
                 f"< {MIN_BEARING_SIGMA_RAD:g} rad: no camera measures that well",
+                subject=key,
             )
             return False
         return True

@@ -172,6 +172,21 @@ def test_bad_input_is_counted_by_reason_and_never_becomes_a_fused_point(payload,
     assert fusion.tracker.targets == ()
 
 
+def test_each_vehicles_refusals_are_logged_though_another_vehicle_logged_the_same_reason(caplog):
+    """Stale tracks of uav1, then of uav2 within the log interval: uav2's were counted but never logged, so its
+    fault stayed hidden behind uav1's (a fault-injection audit's leftover: per-vehicle log intervals)."""
+    fusion = new_fusion()
+    old = int((T0_UNIX_S - 10) * 1e6)
+    with caplog.at_level(logging.WARNING):
+        for key, who in (("irtrack/uav1/track", UAV1), ("irtrack/uav2/track", UAV2)):
+            for k in range(3):
+                bad = {**json.loads(payload_of(who, 0.0, np.random.default_rng(k), k)), "time_unix_us": old}
+                fusion.receive(key, json.dumps(bad).encode(), T0_UNIX_S)
+    assert fusion.counter["stale"] == 6
+    logged = [r.getMessage() for r in caplog.records if r.getMessage().startswith("stale: ")]
+    assert [m.split(":")[1].strip() for m in logged] == ["irtrack/uav1/track", "irtrack/uav2/track"], logged
+
+
 def test_its_own_output_and_other_vehicles_are_not_input(caplog):
     fusion = new_fusion(vehicles=["uav1", "uva2"])  # uav2 mistyped
     fusion.receive(fleet_track_key(), b"{}", T0_UNIX_S)
