@@ -346,10 +346,15 @@ class ObjectTracker:
         image = check_frame(image)
         self._frame_index += 1
         self.frame_steps = frame_steps(self._last_time_us, time_boot_us, self.frame_rate_hz)
-        gap_periods = frame_periods(self._last_time_us, time_boot_us, self.frame_rate_hz)
+        gap_s = frame_periods(self._last_time_us, time_boot_us, self.frame_rate_hz) / self.frame_rate_hz
+        if self._last_time_us is not None and time_boot_us is not None and time_boot_us < self._last_time_us:
+            # the frames' time going back: the stream restarted (the daemon takes no frame out of order), its
+            # tracks' predictions of another time (a restarted simulator's first frames had the old primary coast 45
+            # frames off the image)
+            gap_s = (time_boot_us - self._last_time_us) * 1e-6
         self._last_time_us = time_boot_us
-        if round(gap_periods) - 1 > self.params.coast_frames:  # frames missing before this one
-            self._forget_after_gap(gap_periods / self.frame_rate_hz)
+        if gap_s < 0.0 or round(gap_s * self.frame_rate_hz) - 1 > self.params.coast_frames:  # frames missing
+            self._forget_after_gap(gap_s)
         for t in (t for t in self._tracks if 2 * t.dim_hits < t.hits):  # dropped frames (see tbd.frame_steps)
             t.los = unit_vector(t.los + (self.frame_steps - 1) * t.rate)
         if not callable(R_ned_from_cam):
@@ -410,10 +415,12 @@ class ObjectTracker:
         counted in frames) are of that other time too."""
         self.gap_losses += 1
         log.info(
-            "frame %d: %.2f s since the last frame, longer than a track coasts (%d frames): every track lost",
+            "frame %d: %+.2f s since the last frame, %s: every track lost",
             self._frame_index,
             gap_s,
-            self.params.coast_frames,
+            "back in time (the stream restarted)"
+            if gap_s < 0
+            else f"longer than a track coasts ({self.params.coast_frames} frames)",
         )
         self.clear_tracks()
         if self.tbd is not None:

@@ -408,3 +408,18 @@ def test_a_gap_loses_the_tracks_only_past_the_coast(missing):
     else:
         assert tr.gap_losses == 1 and not out.confirmed and out.primary_id is None
         assert [k for k, _ in tr.detector._recent] == [out.frame_index]
+
+
+def test_the_frames_time_going_back_loses_every_track():
+    """A restarted stream (a new boot: the daemon takes no frame out of order otherwise): the old primary had
+    coasted 45 frames on its prediction of another time, off the image (a fault-injection audit restarting the
+    simulator)."""
+    rng = np.random.default_rng(14)
+    period_us = 33_333
+    tr = ObjectTracker(K, imaging=ImagingParams(chain="objects", tbd=False))
+    for k in range(20):
+        out = tr.update(_frame(rng, [(80.0, 64.0)], peak_netd=20.0), R_MOUNT, 20_000_000 + k * period_us)
+    assert out.confirmed and tr.gap_losses == 0
+    out = tr.update(_frame(rng, [(30.0, 40.0)], peak_netd=20.0), R_MOUNT, 1_000_000)
+    assert tr.gap_losses == 1 and not out.confirmed and out.primary_id is None
+    assert [o.state for o in out.objects] == ["tentative"]  # the point seen now: a new track, acquired afresh
