@@ -60,9 +60,9 @@ What a ground station sees (MAVLink common.xml; QGroundControl's src/Camera disc
   ``rejected``; logged at INFO, once per reason and log interval): every answer DENIED
   (``gcs_command_denied``), UNSUPPORTED (``gcs_command_unsupported``), FAILED (``gcs_command_failed``) or
   TEMPORARILY_REJECTED (``gcs_command_temporarily_rejected``), with the command, the requester and the
-  reason; a SET_MESSAGE_INTERVAL served slower than asked (``gcs_message_interval_clamped``).  INFO, not
-  WARNING: a misclick or a ground station probing for features is no fault of ours.  The camera's own
-  ``counters`` (:meth:`CameraProtocol.status`) count every command and every answer by result.
+  reason, once per command (the answer repeated to a tracking command's retransmission is no second refusal); a
+  SET_MESSAGE_INTERVAL served slower than asked (``gcs_message_interval_clamped``).  INFO, not WARNING: a misclick
+  or a ground station probing for features is no fault of ours.  The camera's own ``counters`` (:meth:`CameraProtocol.status`) count every command and every answer by result.
 * A tracking command while an earlier one of the same id from the same requester waits for the
   pipeline (the command protocol, mavlink.io services/command; QGC's MavCommandQueue):
 
@@ -780,9 +780,9 @@ class CameraProtocol:
             self._count("track_superseded")
         decided = self._decided.get((to, c))
         if decided is not None and cmd.confirmation > 0 and now_s < decided.until_s and _same_params(decided.params, p):
-            # module docstring: its ACK was lost; the same answer again, not a second selection
+            # module docstring: its ACK was lost; the same answer again, not a second selection, nor a second refusal
             self._count("track_retransmission")
-            return [self._ack(c, decided.result, to, reason=decided.reason)], None
+            return [self._ack(c, decided.result, to, reason=decided.reason, repeated=True)], None
         self._decided.pop((to, c), None)  # a new command: an ACK of the older one would be read as its answer
         rid = self._next_request_id
         self._next_request_id += 1
@@ -930,11 +930,14 @@ class CameraProtocol:
 
     # ------------------------------------------------------------------ helpers
 
-    def _ack(self, command: int, result: int, to: _Requester, progress: int = 0, reason: str = "") -> Outgoing:
-        """The COMMAND_ACK; a refusing result is counted in the shared counter with ``reason`` (module docstring)."""
+    def _ack(
+        self, command: int, result: int, to: _Requester, progress: int = 0, reason: str = "", repeated: bool = False
+    ) -> Outgoing:
+        """The COMMAND_ACK; a refusing result is counted in the shared counter with ``reason`` (module docstring),
+        unless ``repeated``: the answer again to a retransmission of a command whose refusal is counted already."""
         self._count(f"ack_{result}")
         refusal = _REFUSAL_REASONS.get(result)
-        if refusal is not None and self.counter is not None:
+        if refusal is not None and self.counter is not None and not repeated:
             # INFO: a refused command is the sender's mistake or a limit of ours, not a fault of the daemon, but
             # an operator asking why a click did nothing finds it in the log
             self.counter.count(

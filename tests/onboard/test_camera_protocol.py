@@ -849,3 +849,21 @@ def test_a_heartbeat_period_qgc_would_drop_the_camera_in_is_refused_naming_the_f
     assert build_config({"gcs": {"heartbeat_interval_s": 4.0}}).gcs.heartbeat_interval_s == 4.0
     with pytest.raises(OnboardConfigError, match="gcs.heartbeat_interval_s"):
         build_config({"gcs": {"heartbeat_interval_s": 6.0}})
+
+
+@pytest.mark.parametrize("timeout", [False, True])
+def test_a_retransmission_answered_with_a_refusal_again_is_not_a_second_refusal(timeout):
+    """The resend of a refused tracking command gets the refusal's ACK again, but it is the same command refused
+    once: the shared counter counts it once (the camera's ``ack_<result>`` counts each answer sent)."""
+    proto, counter, clock = _counted_proto(track_request_timeout_s=1.0)
+    params = (0.25, 0.5, 20 / W)
+    _, req = proto.handle(_cmd(cp.MAV_CMD_CAMERA_TRACK_POINT, *params), clock(), 0)
+    if timeout:
+        first, reason = proto.tick(clock() + 1.0, None), "gcs_command_temporarily_rejected"
+    else:
+        first, reason = proto.complete(TrackResult(req.request_id, False, "no warm object there")), "gcs_command_failed"
+    for confirmation in (1, 2):
+        out, again = proto.handle(_cmd(cp.MAV_CMD_CAMERA_TRACK_POINT, *params, confirmation=confirmation), clock(), 0)
+        assert again is None and _ack(out)["result"] == _ack(first)["result"]
+    assert counter.counts == {reason: 1}
+    assert proto.status()["counters"][f"ack_{_ack(first)['result']}"] == 3
