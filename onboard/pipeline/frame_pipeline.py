@@ -339,8 +339,16 @@ class FramePipeline:
         upd = None
         while self._selections:
             req, on_done = self._selections.popleft()
-            if not req.claim():  # the camera gave up waiting and told the ground station so: not carried out
-                self.counter.count("selection_expired", f"request {req.request_id} ({req.kind}) answered as rejected")
+            if not req.claim():
+                # the camera decided it without a frame: it timed out (answered TEMPORARILY_REJECTED, counted and
+                # logged there) or a newer command from its sender replaced it (never answered): not carried out,
+                # and no fault here to warn of (a ground station resending every 5 ms to a camera without frames
+                # queues thousands of these, whose first frame logged a WARNING saying each was answered)
+                self.counter.count(
+                    "selection_expired",
+                    f"request {req.request_id} ({req.kind}) decided without a frame (timed out or replaced)",
+                    level=logging.DEBUG,
+                )
                 continue
             result = None
             try:

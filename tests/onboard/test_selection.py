@@ -3,6 +3,7 @@ camera step (command in -> pipeline -> COMMAND_ACK out), with synthetic frames a
 
 from __future__ import annotations
 
+import logging
 import math
 
 import numpy as np
@@ -384,3 +385,22 @@ def test_a_request_the_camera_gave_up_on_is_not_carried_out_by_a_later_frame():
     pipe.request_selection(other, results.append)
     assert pipe.process(_ir(2)).state == "searching" and results[-1].accepted
     assert not other.claim()  # the pipeline took it: the camera's timeout leaves it alone
+
+
+def test_requests_the_camera_decided_without_a_frame_are_counted_not_warned(caplog):
+    """Timed out (the camera answered and counted it) or replaced by a newer command (never answered): the frame that
+    comes later skips them quietly.  A ground station that resent a click every 5 ms to a camera without frames
+    queued thousands, and the first frame logged a WARNING saying each had been answered as rejected."""
+    pipe, _ = _pipeline("auto")
+    assert pipe.process(_ir(0)).state == "tracking"
+    results = []
+    for k in range(50):
+        req = TrackRequest(k + 1, "point", u_px=300.0, v_px=300.0, radius_px=20.0)
+        pipe.request_selection(req, results.append)
+        assert req.claim()  # replaced by the next one, or timed out: the camera's
+    with caplog.at_level(logging.DEBUG):
+        assert pipe.process(_ir(1)).state == "tracking"
+    assert results == [] and pipe.counter["selection_expired"] == 50
+    expired = [r for r in caplog.records if "selection_expired" in r.getMessage()]
+    assert expired and {r.levelno for r in expired} == {logging.DEBUG}
+    assert "answered" not in expired[0].getMessage()
