@@ -126,6 +126,9 @@ COMPENSATION_REBUILD_MS = 0.5
 #: an estimator without ``rebuild`` is restarted instead, which loses its window: only beyond this (50 ms at 0.1 rad/s
 #: of camera rotation: 5 mrad, ten times the noise)
 COMPENSATION_RESTART_MS = 10.0
+#: operator requests waiting for a frame at most: a ground station resending every 5 ms to a camera without frames
+#: queued thousands (3 MB of memory per 5000), each decided by the camera's timeout all the same
+MAX_QUEUED_SELECTIONS = 64
 #: counter keys of frames refused for their tracker's fault (:meth:`FramePipeline.process`), not the frame's
 TRACKER_REFUSALS = ("tracker_output_invalid", "tracker_error")
 #: ``frame_*`` counter keys of events on frames that were taken (module docstring), not refusals: the status's
@@ -285,7 +288,8 @@ class FramePipeline:
         f_px = math.sqrt(self.intrinsics.fx_px * self.intrinsics.fy_px)
         self._bearing_sigma_rad = math.hypot(self._pixel_sigma_px / f_px, self.attitude_sigma_rad)
         self._residuals: collections.deque = collections.deque()  # (time_boot_us, z_u^2 + z_v^2)
-        self._selections: collections.deque = collections.deque()  # (TrackRequest, on_done): any thread appends
+        # (TrackRequest, on_done): any thread appends; bounded, as the pipeline takes them only with frames
+        self._selections: collections.deque = collections.deque(maxlen=MAX_QUEUED_SELECTIONS)
         to = getattr(config, "time_offset", None)  # a test's config may lack the section: then none
         #: the camera clock's offset estimator (None: ``time_offset.enabled`` false); step 7 of the module docstring
         self.time_offset = TimeOffsetEstimator(to.params()) if to is not None and to.enabled else None
@@ -316,8 +320,16 @@ class FramePipeline:
         On that frame, before imaging: ``stop`` ends the track and holds the tracker idle (accepted);
         ``point`` / ``rectangle`` select on the frame (:meth:`TargetTracker.select_point` /
         ``select_rectangle``): found, the new track is this frame's and the 3-D estimate restarts;
-        nothing there, refused with the reason and the frame is tracked as usual.
+        nothing there, refused with the reason and the frame is tracked as usual.  Without frames at most
+        :data:`MAX_QUEUED_SELECTIONS` wait: a newer one pushes the oldest out (counted ``selection_dropped``),
+        which the camera answers as it answers any request that waited too long.
         """
+        if len(self._selections) >= MAX_QUEUED_SELECTIONS:
+            self.counter.count(
+                "selection_dropped",
+                f"request {request.request_id} pushed the oldest of {MAX_QUEUED_SELECTIONS} waiting for a frame out",
+                level=logging.DEBUG,
+            )
         self._selections.append((request, on_done))
 
     def _selects_the_followed_object(self, sel) -> bool:

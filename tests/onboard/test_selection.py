@@ -404,3 +404,22 @@ def test_requests_the_camera_decided_without_a_frame_are_counted_not_warned(capl
     expired = [r for r in caplog.records if "selection_expired" in r.getMessage()]
     assert expired and {r.levelno for r in expired} == {logging.DEBUG}
     assert "answered" not in expired[0].getMessage()
+
+
+def test_requests_waiting_without_frames_are_bounded():
+    """With no frames nothing takes the queued requests: a ground station resending every 5 ms grew it without end
+    (3 MB per 5000, a fault-injection audit). At most MAX_QUEUED_SELECTIONS wait, the newest; the camera answers the
+    others when they time out, as it answers any that waited too long."""
+    from onboard.pipeline.frame_pipeline import MAX_QUEUED_SELECTIONS
+
+    pipe, _ = _pipeline("auto")
+    assert pipe.process(_ir(0)).state == "tracking"
+    results = []
+    reqs = [TrackRequest(k + 1, "point", u_px=300.0, v_px=300.0, radius_px=20.0) for k in range(1000)]
+    for req in reqs:
+        pipe.request_selection(req, results.append)
+    assert len(pipe._selections) == MAX_QUEUED_SELECTIONS
+    assert pipe.counter["selection_dropped"] == 1000 - MAX_QUEUED_SELECTIONS
+    pipe.process(_ir(1))
+    assert len(results) == MAX_QUEUED_SELECTIONS and not pipe._selections  # the newest ones, each answered
+    assert reqs[0].claim()  # the oldest never reached the pipeline: the camera's timeout decides it
