@@ -49,10 +49,11 @@ class TrackRequest:
 @dataclass(frozen=True)
 class TrackResult:
     """The pipeline's answer to a :class:`TrackRequest`: ``accepted`` and, when not, ``reason`` (text);
-    ``u_px, v_px`` the selected object's centre when accepted."""
+    ``u_px, v_px`` the selected object's centre and ``track_id`` its track when accepted."""
 
     request_id: int
     accepted: bool
     reason: str = ""
     u_px: float | None = None
     v_px: float | None = None
+    track_id: int | None = None

@@ -524,6 +524,7 @@ class CameraProtocol:
     counters: dict[str, int] = field(init=False, default_factory=dict)
     last_refusal: str | None = field(init=False, default=None)
     selection_mode: int = field(init=False, default=CAMERA_TRACKING_MODE_NONE)
+    _selected_track_id: int | None = field(init=False, default=None)
 
     def __post_init__(self) -> None:
         _int_in("CameraProtocol.component_id", self.component_id, 1, 255)
@@ -817,7 +818,7 @@ class CameraProtocol:
         superseded = self._superseded.pop(result.request_id, None)
         if superseded is not None:  # acted on, never answered (module docstring)
             if result.accepted:
-                self._accepted(superseded.request.kind)
+                self._accepted(superseded.request.kind, result.track_id)
             return []
         pend = self._pending.pop(result.request_id, None)
         if pend is None:
@@ -826,7 +827,7 @@ class CameraProtocol:
             reason = result.reason or "refused"
             self._decide(pend, MAV_RESULT_FAILED, reason)
             return self._refuse(pend.command, MAV_RESULT_FAILED, reason, pend.requester)
-        self._accepted(pend.request.kind)
+        self._accepted(pend.request.kind, result.track_id)
         self._decide(pend, MAV_RESULT_ACCEPTED)
         return [self._ack(pend.command, MAV_RESULT_ACCEPTED, pend.requester)]
 
@@ -838,12 +839,13 @@ class CameraProtocol:
         while len(self._decided) > _MAX_DECIDED:
             self._decided.popitem(last=False)
 
-    def _accepted(self, kind: str) -> None:
+    def _accepted(self, kind: str, track_id: int | None = None) -> None:
         self.selection_mode = {
             "point": CAMERA_TRACKING_MODE_POINT,
             "rectangle": CAMERA_TRACKING_MODE_RECTANGLE,
             "stop": CAMERA_TRACKING_MODE_NONE,
         }[kind]
+        self._selected_track_id = track_id  # the operator's: another track is not (see tick)
         self._count(f"track_{kind}_accepted")
 
     def pending_requests(self) -> int:
@@ -898,6 +900,16 @@ class CameraProtocol:
                 self.selection_mode = CAMERA_TRACKING_MODE_NONE
             return out
         self._was_tracking = True
+        if (
+            self.selection_mode != CAMERA_TRACKING_MODE_NONE
+            and self._selected_track_id is not None
+            and track is not None
+            and track.track_id != self._selected_track_id
+        ):
+            # the operator's object was lost and the tracker took another on its own (auto mode): that one is no
+            # selection, and #275 says so (RECTANGLE, as for any automatic acquisition) rather than the click's mode
+            self.selection_mode = CAMERA_TRACKING_MODE_NONE
+            self._selected_track_id = None
         for msg_id, build in (
             (MSG_TRACKING_IMAGE_STATUS, self._image_status),
             (MSG_TRACKING_GEO_STATUS, self._geo_status),

@@ -396,7 +396,7 @@ class FramePipeline:
                             )
                         else:
                             self._reset_estimator(f"operator selection ({req.kind})")
-                        result = TrackResult(req.request_id, True, u_px=sel.u_px, v_px=sel.v_px)
+                        result = TrackResult(req.request_id, True, u_px=sel.u_px, v_px=sel.v_px, track_id=sel.track_id)
             except InputError as exc:
                 result = TrackResult(req.request_id, False, f"frame refused: {exc}")
             except Exception as exc:  # noqa: BLE001 - a selection bug must not stop the frame loop

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import logging
 import math
+from dataclasses import replace
 
 import pytest
 from hypothesis import given, settings
@@ -276,6 +277,19 @@ def test_track_point_is_converted_to_pixels_and_acked_when_the_pipeline_decides(
     assert img["tracking_mode"] == mav.CAMERA_TRACKING_MODE_POINT
     assert (img["point_x"], img["point_y"]) == pytest.approx((0.25, 0.5))
     assert math.isnan(img["rec_top_x"]) and img["camera_device_id"] == 0
+
+
+def test_a_target_the_tracker_took_on_its_own_after_the_operators_is_no_longer_reported_as_the_click():
+    """The operator's object lost, the auto mode took another without passing through 'lost': #275 kept POINT mode
+    and the status 'selection_mode: point' for a target nobody clicked (a fault-injection audit on C3)."""
+    proto = _proto()
+    _, req = proto.handle(_cmd(cp.MAV_CMD_CAMERA_TRACK_POINT, 0.25, 0.5, 20 / W), 1.0, 0)
+    proto.complete(TrackResult(req.request_id, True, u_px=161.0, v_px=255.0, track_id=7))
+    selected = _track(u=160.0, v=256.0)
+    assert _image_status(proto, 1.2, replace(selected, track_id=7))["tracking_mode"] == mav.CAMERA_TRACKING_MODE_POINT
+    img = _image_status(proto, 1.5, replace(selected, track_id=8))
+    assert img["tracking_mode"] == mav.CAMERA_TRACKING_MODE_RECTANGLE and math.isnan(img["point_x"])
+    assert proto.status()["selection_mode"] == "none"
 
 
 @pytest.mark.parametrize("box_px, radius", [((150.0, 240.0, 24.0, 16.0), 12.0 / W), (None, math.nan)])
