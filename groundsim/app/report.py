@@ -214,7 +214,14 @@ def cmd_report(args) -> int:
     """Replay the recording, draw the report; print the files written.  Ctrl-C: one line, exit 130."""
     from groundsim.evaluation.flight_report import REPORT_SCHEMA, holds_flight_report, write_flight_report
     from groundsim.evaluation.out_dir import make_out_dir, refuse_foreign_out
-    from onboard.app.replay import ReplayProgress, config_of, load_recording, no_frames_text, replay
+    from onboard.app.replay import (
+        ReplayProgress,
+        config_of,
+        load_recording,
+        no_frames_text,
+        recorder_drops_note,
+        replay,
+    )
     from onboard.core.errors import InputError
 
     # the report replaces an earlier one's plots and summary.json by name: only into a folder of its own
@@ -227,6 +234,9 @@ def cmd_report(args) -> int:
             raise InputError(no_frames_text(rec))
         if rec.truncated:
             print(f"note: {args.mcap} is cut short ({rec.truncated}): the report covers it to its last chunk")
+        drops = recorder_drops_note(rec)
+        if drops is not None:
+            print(f"note: {drops}")
         truth = rec.truth
         truth_cut = None
         if args.truth:

@@ -29,6 +29,9 @@ such), and the pose buffer is not rebuilt from the raw MAVLink (the recorded pos
 pipeline's work) are the recorded track's of the same frame, whatever the replay's configuration; a frame with no
 recorded track has none.
 
+Not replayed either: the frames whose ``irtrack.frame_input/1`` the recorder dropped (its backlog full): the file
+shows no trace of them, so replay prints the drops the last recorded status counts (:func:`recorder_drops`).
+
 ``--rate realtime`` paces frames at their recorded receive times; ``max`` (default) runs as fast as
 the pipeline goes and prints the speed against real time.  The flight report (plots of a recording) is
 the ground side's: ``python -m groundsim report FILE.mcap``.
@@ -107,6 +110,8 @@ __all__ = [
     "compare_objects",
     "recorded_worker",
     "no_frames_text",
+    "recorder_drops",
+    "recorder_drops_note",
     "beyond_a_workers_sigma",
     "main",
 ]
@@ -229,6 +234,39 @@ def load_recording(path: str) -> Recording:
         imaging_poses,
         statuses,
         input_log_ns,
+    )
+
+
+def recorder_drops(rec: Recording) -> dict[str, int]:
+    """Messages the recorder dropped, per topic (its backlog past ``record.queue_mb``, or after it stopped), as the
+    last status in the file that says so has it (``record.dropped_by_topic``: over the whole recording, rotated files
+    before this one included, up to that status); {} when none says.  The file cannot show them itself: a frame input
+    the recorder dropped leaves no trace in it (the frame's ``seq`` gap reads as the daemon's frame queue dropping
+    the frame), and replay feeds the pipeline fewer frames than the daemon's took."""
+    for _log_ns, data in reversed(rec.statuses):
+        try:
+            by_topic = json.loads(data)["record"]["dropped_by_topic"]
+            return {str(t): n for t, n in by_topic.items() if isinstance(n, int) and n > 0}
+        except (ValueError, KeyError, TypeError, AttributeError):  # a status without the recorder's section
+            continue
+    return {}
+
+
+def recorder_drops_note(rec: Recording) -> str | None:
+    """One line on :func:`recorder_drops` for the replay and the flight report (None: no drop said)."""
+    drops = recorder_drops(rec)
+    if not drops:
+        return None
+    inputs = drops.get(FRAME_INPUT_TOPIC, 0)
+    return (
+        f"{rec.path}: the recorder dropped {sum(drops.values())} messages (its last status in the file, "
+        f"record.dropped_by_topic: {', '.join(f'{n} on {t}' for t, n in sorted(drops.items()))})"
+        + (
+            f"; {inputs} frames the daemon's pipeline took are not in the file, so not replayed: the tracks after "
+            "the first of them need not be the flight's"
+            if inputs
+            else ""
+        )
     )
 
 
@@ -896,6 +934,9 @@ def _run(args: argparse.Namespace, progress: _Progress) -> int:
         + (f", {len(rec.objects)} frames of objects" if rec.objects else "")
         + (f"; file cut short ({rec.truncated}): read to its last chunk" if rec.truncated else "")
     )
+    note = recorder_drops_note(rec)
+    if note is not None:
+        print(note)
     live = None
     try:
         if args.live_view is not None:

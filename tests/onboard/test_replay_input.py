@@ -520,3 +520,27 @@ def test_a_message_of_a_version_replay_does_not_read_is_refused_naming_it(tmp_pa
         f"(it reads {'irtrack.frame_input/1' if 'frame' in schema else 'irtrack.track/1, irtrack.track/2'}): "
         "a newer irtrack's?"
     )
+
+
+def test_frame_inputs_the_recorder_dropped_are_said_from_its_last_status(recording, tmp_path, capsys, monkeypatch):
+    """A frame input the recorder dropped (its backlog full) leaves no trace in the file: replay said it replayed
+    every frame the pipeline took while it fed fewer; the daemon's status in the file counts the drops."""
+    import dataclasses
+
+    import onboard.app.replay as replay_module
+
+    holey = tmp_path / "holey.mcap"
+    _copy(recording, holey, FRAME_INPUT_TOPIC, lambda data: None)
+    said = {"record": {"dropped_by_topic": {FRAME_INPUT_TOPIC: 1, "/mavlink/autopilot": 3}}}
+    statuses = [(1, json.dumps({"record": {"dropped_by_topic": {}}}).encode()), (2, json.dumps(said).encode())]
+    load = replay_module.load_recording
+    monkeypatch.setattr(
+        replay_module, "load_recording", lambda path: dataclasses.replace(load(path), statuses=statuses)
+    )
+    assert main([str(holey)]) == EXIT_OK
+    assert capsys.readouterr().out.splitlines()[1] == (
+        f"{holey}: the recorder dropped 4 messages (its last status in the file, record.dropped_by_topic: 3 on "
+        f"/mavlink/autopilot, 1 on {FRAME_INPUT_TOPIC}); 1 frames the daemon's pipeline took are not in the file, so "
+        "not replayed: the tracks after the first of them need not be the flight's"
+    )
+    assert replay_module.recorder_drops_note(dataclasses.replace(load(holey), statuses=statuses[:1])) is None
