@@ -79,7 +79,8 @@ default), ``vehicle``, ``started_utc``, ``recorder`` (``onboard`` or ``groundsim
 **Never stalls the caller**: every ``on_*`` method timestamps, numbers, appends to a deque and returns
 (microseconds); a writer thread encodes (protobuf, JSON) and writes.  When the backlog passes
 ``record.queue_mb`` new messages are dropped and counted (``dropped``, per topic in
-``dropped_by_topic``; the daemon's status JSON shows :meth:`FlightRecorder.stats` under ``record``).
+``dropped_by_topic``; the daemon's status JSON shows :meth:`FlightRecorder.stats` under ``record``), the first drop
+logged once and the total at close (the status that counted them ends with the daemon).
 **Bounded**: a file is closed (with its summary) and the next one opened (``FILE.1.mcap``,
 ``FILE.2.mcap``, ...) past ``record.max_file_mb`` or ``record.max_file_s``; with
 ``record.max_files`` > 0 the oldest files beyond that many are deleted.  Every ``record.sync_mb`` written the
@@ -443,6 +444,7 @@ class FlightRecorder:
         self._next_lost_check_s = 0.0
         self._finish_ok = True  # the last file finished had its summary written
         self._write_until = math.inf  # time.monotonic() past which a closing writer drops the rest
+        self._said_full = False  # the first message dropped for a full backlog was logged
 
     # ------------------------------------------------------------------ producers (any thread)
 
@@ -462,17 +464,27 @@ class FlightRecorder:
             if seq is None:
                 seq = self._counts.get(topic, 0)
                 self._counts[topic] = seq + 1  # a dropped message keeps its number: the gap shows the drop
-            if self.stopped is not None or self._queued_bytes + nbytes > self.settings.queue_bytes:
-                self.dropped += 1  # (stopped: nothing is written any more)
-                self.dropped_by_topic[topic] += 1
-                return False
-            self._queued_bytes += nbytes
-            if self._queued_bytes > self.max_queue_bytes:
-                self.max_queue_bytes = self._queued_bytes
-            self._q.append((kind, topic, nbytes, item, t_ns, seq & 0xFFFFFFFF))
-            if self._queued_bytes >= self._wake_bytes:
-                self._cond.notify()  # a chunk's worth: the writer turns (else at its flush deadline)
-            return True
+            full = self.stopped is None and self._queued_bytes + nbytes > self.settings.queue_bytes
+            if self.stopped is None and not full:
+                self._queued_bytes += nbytes
+                if self._queued_bytes > self.max_queue_bytes:
+                    self.max_queue_bytes = self._queued_bytes
+                self._q.append((kind, topic, nbytes, item, t_ns, seq & 0xFFFFFFFF))
+                if self._queued_bytes >= self._wake_bytes:
+                    self._cond.notify()  # a chunk's worth: the writer turns (else at its flush deadline)
+                return True
+            self.dropped += 1  # (stopped: nothing is written any more, and the stop was said)
+            self.dropped_by_topic[topic] += 1
+            say = full and not self._said_full
+            self._said_full = self._said_full or full
+        if say:  # outside the lock: a log handler's I/O never holds up the other callers
+            log.warning(
+                "recorder: backlog past record.queue_mb (%g MB): messages dropped from the recording, the first on %s"
+                " (counted per topic, the status's record.dropped_by_topic; said once, the total at close)",
+                self.settings.queue_mb,
+                topic,
+            )
+        return False
 
     def on_mavlink(
         self, data: bytes, link: str = "autopilot", source=None, direction: str = "rx", receive_ns: int | None = None
@@ -583,13 +595,20 @@ class FlightRecorder:
         if self._thread is None:  # never started: no file open, nothing queued is written
             stop_and_join(self._cond, self._stop, None, timeout_s)
             self._finish()
-            return
-        if not stop_and_join(self._cond, self._stop, self._thread, timeout_s):
+        elif not stop_and_join(self._cond, self._stop, self._thread, timeout_s):
             log.warning(
                 "recorder: %s not finished within %.1f s (a write did not return); it ends at its last chunk:"
                 " python -m onboard.record_recover reads it whole",
                 self.files[-1] if self.files else self.path,
                 timeout_s,
+            )
+        with self._cond:
+            dropped, by_topic = self.dropped, sorted(self.dropped_by_topic.items())
+        if dropped:  # the status that counted them ends with the daemon: the log keeps the recording's holes
+            log.warning(
+                "recorder: %d messages dropped from the recording in all (%s)",
+                dropped,
+                ", ".join(f"{n} on {topic}" for topic, n in by_topic),
             )
 
     # ------------------------------------------------------------------ writer thread

@@ -490,3 +490,23 @@ def test_close_with_a_backlog_finishes_the_file_within_its_time(tmp_path):
     assert summary is not None and summary.statistics.message_count == written
     assert rec.stats()["dropped_at_close"] == n - written
     print(f"closed in {took_s * 1000:.0f} ms with {written} of {n} frames written")
+
+
+def test_a_full_backlog_is_logged_once_and_the_drops_in_all_at_close(tmp_path, caplog):
+    """A starved recorder (record.queue_mb=1 under zstd 64 MB chunks, a 30 s flight) dropped 199 messages, 15 of them
+    frame inputs, and the daemon's log said nothing of it: only the status, gone with the daemon, counted them."""
+    import logging
+
+    rec = FlightRecorder(below_floors(RecordConfig(path=str(tmp_path / "d.mcap")), queue_mb=0.01), vehicle="uav1")
+    with caplog.at_level(logging.WARNING, logger="onboard.io.record"):
+        ok = [rec.on_frame(_frame(i), i) for i in range(10)]  # not started: nothing drains the queue
+        rec.close(1.0)
+    assert ok.count(False) == 7
+    said = [r.getMessage() for r in caplog.records]
+    assert [m for m in said if "backlog past record.queue_mb" in m] == [
+        "recorder: backlog past record.queue_mb (0.01 MB): messages dropped from the recording, the first on "
+        "irtrack/uav1/ir/frame (counted per topic, the status's record.dropped_by_topic; said once, the total at close)"
+    ]
+    assert [m for m in said if "in all" in m] == [
+        "recorder: 7 messages dropped from the recording in all (7 on irtrack/uav1/ir/frame)"
+    ]
