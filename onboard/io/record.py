@@ -193,6 +193,13 @@ def mavlink_topic(link: str) -> str:
     return f"/mavlink/{link}"
 
 
+def _os_error_text(exc: OSError) -> str:
+    """The system's words for ``exc``, after the file it names if any (the next file a rotation could not make: a
+    read-only folder, a name taken); a write to the open descriptor names none."""
+    what = exc.strerror or str(exc)
+    return f"{exc.filename}: {what}" if exc.filename else what
+
+
 # --------------------------------------------------------------------------- pure encoders
 
 
@@ -636,7 +643,7 @@ class FlightRecorder:
                     self._write(kind, topic, item, t_ns, seq)
                 except OSError as exc:  # the disk refused a write: nothing after it can be trusted to land
                     self.write_errors += 1
-                    self._halt(f"a write failed ({exc.strerror or exc})", batch[i + 1 :], refused=True)
+                    self._halt(f"a write failed ({_os_error_text(exc)})", batch[i + 1 :], refused=True)
                     break
                 except Exception as exc:  # noqa: BLE001 - the recorder must not die on one message
                     self.write_errors += 1
@@ -669,7 +676,7 @@ class FlightRecorder:
                 self.write_errors += 1
                 # a refused write leaves its chunk unwritten (cut back: discarded); a failed sync or rotation refused
                 # no chunk, and the one in progress is finished with the file if the disk takes it
-                self._halt(f"a {'write' if step == 'flush' else step} failed ({exc.strerror or exc})", [],
+                self._halt(f"a {'write' if step == 'flush' else step} failed ({_os_error_text(exc)})", [],
                            refused=step == "flush")  # fmt: skip
             except Exception as exc:  # noqa: BLE001
                 self.write_errors += 1
@@ -825,10 +832,13 @@ class FlightRecorder:
         gone = self._file_gone()
         if gone is not None:
             name = self.files[-1]
-            if gone == "deleted":
-                self.lost_files.append(name)
             # finished through its descriptor: a moved file is complete where it went, a deleted one is lost
-            if self._next_file(give_up=True):
+            try:
+                opened = self._next_file(give_up=True)
+            finally:  # once the next file is open (or could not be): the status names where the recording goes on
+                if gone == "deleted":
+                    self.lost_files.append(name)
+            if opened:
                 log.warning(
                     "recorder: %s was %s while recording%s; recording goes on in %s",
                     name,

@@ -510,3 +510,48 @@ def test_a_full_backlog_is_logged_once_and_the_drops_in_all_at_close(tmp_path, c
     assert [m for m in said if "in all" in m] == [
         "recorder: 7 messages dropped from the recording in all (7 on irtrack/uav1/ir/frame)"
     ]
+
+
+def test_a_deleted_file_is_listed_lost_only_once_the_recording_goes_on_in_the_next(tmp_path, monkeypatch):
+    """The daemon's record_file_lost warning, raised from the status while the recorder finished the deleted file,
+    said 'the recording goes on in' the deleted file itself: lost_files was filled before the next file was open."""
+    path = tmp_path / "f.mcap"
+    rec = FlightRecorder(below_floors(RecordConfig(path=str(path), flush_interval_s=0.05)), vehicle="uav1")
+    seen = []  # the stats a status could read while the recorder moves on to the next file
+    for name in ("_finish", "_open"):
+        step = getattr(rec, name)
+        monkeypatch.setattr(rec, name, lambda *a, _step=step: (seen.append(rec.stats()), _step(*a))[1])
+    rec.start()
+    rec.on_frame(_frame(0), 0)
+    os.unlink(path)
+    deadline = time.monotonic() + 10.0
+    i = 1
+    while not rec.lost_files and time.monotonic() < deadline:
+        rec.on_frame(_frame(i), i)
+        i += 1
+        time.sleep(0.01)
+    seen.append(rec.stats())
+    rec.close()
+    assert rec.lost_files == [str(path)]
+    assert {s["current_file"] for s in seen if s["lost_files"]} == {str(tmp_path / "f.1.mcap")}
+
+
+def test_a_rotation_that_cannot_make_the_next_file_stops_the_recording_naming_it(tmp_path):
+    """A read-only recording folder (chattr +i) stopped a flight's recording with 'a rotate failed (Operation not
+    permitted)': the file it could not make was not named.  A name taken since start is refused the same way."""
+    path = tmp_path / "r.mcap"
+    rec = FlightRecorder(
+        below_floors(RecordConfig(path=str(path), flush_interval_s=0.05), max_file_mb=0.001), vehicle="uav1"
+    )
+    rec.start()
+    (tmp_path / "r.1.mcap").write_bytes(b"")  # taken after start chose the name
+    deadline = time.monotonic() + 10.0
+    i = 0
+    while rec.stopped is None and time.monotonic() < deadline:
+        rec.on_frame(_frame(i), i)
+        i += 1
+        time.sleep(0.01)
+    rec.close()
+    assert rec.stopped == f"a rotate failed ({tmp_path / 'r.1.mcap'}: File exists)"
+    assert [p.name for p in sorted(tmp_path.iterdir())] == ["r.1.mcap", "r.mcap"]
+    assert (tmp_path / "r.1.mcap").read_bytes() == b""
