@@ -221,6 +221,7 @@ def cmd_report(args) -> int:
         no_frames_text,
         recorder_drops_note,
         replay,
+        rotated_part_note,
     )
     from onboard.core.errors import InputError
 
@@ -234,9 +235,9 @@ def cmd_report(args) -> int:
             raise InputError(no_frames_text(rec))
         if rec.truncated:
             print(f"note: {args.mcap} is cut short ({rec.truncated}): the report covers it to its last chunk")
-        drops = recorder_drops_note(rec)
-        if drops is not None:
-            print(f"note: {drops}")
+        for note in (rotated_part_note(rec), recorder_drops_note(rec)):
+            if note is not None:
+                print(f"note: {note}")
         truth = rec.truth
         truth_cut = None
         if args.truth:

@@ -31,6 +31,9 @@ recorded track has none.
 
 Not replayed either: the frames whose ``irtrack.frame_input/1`` the recorder dropped (its backlog full): the file
 shows no trace of them, so replay prints the drops the last recorded status counts (:func:`recorder_drops`).
+A later file of a rotated recording (``FILE.N.mcap``) is replayed from a fresh pipeline, while the daemon's went on
+from the files before it: its tracks and objects need not be the recorded ones, and replay says so
+(:func:`rotated_part_note`).
 
 ``--rate realtime`` paces frames at their recorded receive times; ``max`` (default) runs as fast as
 the pipeline goes and prints the speed against real time.  The flight report (plots of a recording) is
@@ -112,6 +115,7 @@ __all__ = [
     "no_frames_text",
     "recorder_drops",
     "recorder_drops_note",
+    "rotated_part_note",
     "beyond_a_workers_sigma",
     "main",
 ]
@@ -267,6 +271,21 @@ def recorder_drops_note(rec: Recording) -> str | None:
             if inputs
             else ""
         )
+    )
+
+
+def rotated_part_note(rec: Recording) -> str | None:
+    """One line when ``rec`` is a later file of a rotated recording (its metadata's ``file_index`` past 0: the
+    daemon's ``FILE.N.mcap``), else None.  The daemon's pipeline went on from the earlier files' frames with their
+    tracks, ids and frame count; replay starts it afresh at this file's first frame."""
+    index = rec.metadata.get("file_index", "0")
+    if not index.isdigit() or int(index) == 0:
+        return None
+    return (
+        f"{rec.path}: file {index} of a rotated recording: replayed from its first frame with no tracks, while the "
+        f"daemon's pipeline went on from the {int(index)} file(s) before it: tracks (their ids, their 3-D), objects "
+        "and their frame_index need not be the recorded ones; a frame received before the file began is in the one "
+        "before (missing from this one)"
     )
 
 
@@ -934,9 +953,9 @@ def _run(args: argparse.Namespace, progress: _Progress) -> int:
         + (f", {len(rec.objects)} frames of objects" if rec.objects else "")
         + (f"; file cut short ({rec.truncated}): read to its last chunk" if rec.truncated else "")
     )
-    note = recorder_drops_note(rec)
-    if note is not None:
-        print(note)
+    for note in (rotated_part_note(rec), recorder_drops_note(rec)):
+        if note is not None:
+            print(note)
     live = None
     try:
         if args.live_view is not None:

@@ -544,3 +544,30 @@ def test_frame_inputs_the_recorder_dropped_are_said_from_its_last_status(recordi
         "not replayed: the tracks after the first of them need not be the flight's"
     )
     assert replay_module.recorder_drops_note(dataclasses.replace(load(holey), statuses=statuses[:1])) is None
+
+
+def test_a_later_file_of_a_rotated_recording_is_said_to_replay_from_a_fresh_start(recording, capsys, monkeypatch):
+    """Replaying rec.1.mcap of a recording rotated at record.max_file_mb=40 gave 0 of 120 frames of objects matched
+    and '11 frames tracking another object (track_id; operator selections are not replayed)': the daemon's pipeline
+    had gone on from rec.mcap's frames, the replay's started afresh, and nothing said so."""
+    import dataclasses
+
+    import onboard.app.replay as replay_module
+
+    load = replay_module.load_recording
+    for index, said in (("0", False), ("2", True)):
+        monkeypatch.setattr(
+            replay_module,
+            "load_recording",
+            lambda path, i=index: (lambda r: dataclasses.replace(r, metadata={**r.metadata, "file_index": i}))(
+                load(path)
+            ),
+        )
+        assert main([str(recording)]) == EXIT_OK
+        lines = capsys.readouterr().out.splitlines()
+        assert (
+            f"{recording}: file 2 of a rotated recording: replayed from its first frame with no tracks, while the "
+            "daemon's pipeline went on from the 2 file(s) before it: tracks (their ids, their 3-D), objects and their "
+            "frame_index need not be the recorded ones; a frame received before the file began is in the one before "
+            "(missing from this one)" in lines
+        ) is said
