@@ -61,7 +61,9 @@ def _input(k: int) -> dict:
 
 
 def _recording(path: str, *, truth: list, truncated: str | None, inputs: list) -> SimpleNamespace:
-    return SimpleNamespace(path=path, inputs=inputs, truth=truth, truncated=truncated, frames={})
+    return SimpleNamespace(
+        path=path, inputs=inputs, truth=truth, truncated=truncated, frames={}, metadata={}, statuses=[]
+    )
 
 
 @pytest.fixture

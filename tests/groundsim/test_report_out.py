@@ -61,7 +61,11 @@ def test_a_truth_file_that_is_no_recording_is_named_as_truth_the_simulators(tmp_
     real = replay_module.load_recording
 
     def load(path):  # the flight a daemon recording with frames; --truth read for real
-        return SimpleNamespace(inputs=[{}], truncated=None, truth=[]) if str(path) == str(flight) else real(path)
+        return (
+            SimpleNamespace(inputs=[{}], truncated=None, truth=[], metadata={}, statuses=[], path=str(flight))
+            if str(path) == str(flight)
+            else real(path)
+        )
 
     monkeypatch.setattr(replay_module, "load_recording", load)
     code = cli.main(["report", str(flight), "--truth", str(truth), "--out", str(tmp_path / "r")])
