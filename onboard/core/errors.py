@@ -4,8 +4,6 @@ from __future__ import annotations
 
 from typing import Any
 
-import numpy as np
-
 
 def _rebuild(cls: type[IrtrackError], args: tuple) -> IrtrackError:
     """An error of ``cls`` holding ``args``, made without its ``__init__`` (see :meth:`IrtrackError.__reduce__`)."""
@@ -33,6 +31,8 @@ def wrong_sizes(*expected: tuple[str, Any, int]) -> str:
     """``"<name> has N values, expected M"`` for each ``(name, value, M)`` whose value (a sequence or an array) does
     not hold M values, joined by ``"; "``: the text of the InputError a step method raises for arguments of the wrong
     size (numpy's own reshape error names none)."""
+    import numpy as np  # here: the container's health probe imports this module and the standard library only
+
     return "; ".join(
         f"{name} has {np.size(value)} values, expected {size}"
         for name, value, size in expected

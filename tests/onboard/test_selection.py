@@ -398,7 +398,8 @@ def test_requests_the_camera_decided_without_a_frame_are_counted_not_warned(capl
         req = TrackRequest(k + 1, "point", u_px=300.0, v_px=300.0, radius_px=20.0)
         pipe.request_selection(req, results.append)
         assert req.claim()  # replaced by the next one, or timed out: the camera's
-    with caplog.at_level(logging.DEBUG):
+    # the counter's own logger: another test in this process may have set its level (an entry point's logging set-up)
+    with caplog.at_level(logging.DEBUG, logger=pipe.counter._log.name):
         assert pipe.process(_ir(1)).state == "tracking"
     assert results == [] and pipe.counter["selection_expired"] == 50
     expired = [r for r in caplog.records if "selection_expired" in r.getMessage()]
