@@ -467,39 +467,31 @@ class Watchdog:
     def stream_rates(self, now_s: float, slow) -> None:
         """The requested telemetry streams arriving at under half their confirmed rate for a few seconds (a list of
         :class:`~onboard.core.stream_rate.StreamRate`, from the link; empty: none): warned once, naming each."""
-        self._hold(
+        self._hold_each(
             "stream_rate_low",
-            "; ".join(
+            [
                 f"{r.name} (#{r.msg_id}) arrives at {r.measured_hz:.1f} Hz, {r.requested_hz:g} Hz requested and "
                 f"ACCEPTED"
                 for r in slow
-            )
-            + (
-                ": the autopilot caps the stream (its scheduler or the link's bandwidth: ArduPilot ACCEPTS and sends "
-                "what it can) or the link loses messages; poses are interpolated over wider gaps. Check the "
-                "autopilot's stream rate limits and the link (status link.streams)"
-                if slow
-                else ""
-            ),
+            ],
+            "the autopilot caps the stream (its scheduler or the link's bandwidth: ArduPilot ACCEPTS and sends what it "
+            "can) or the link loses messages; poses are interpolated over wider gaps. Check the autopilot's stream "
+            "rate limits and the link (status link.streams)",
         )
 
     def autopilot_duplicate(self, now_s: float, senders) -> None:
         """The second senders of the autopilot's identity heard lately (a list of
         :class:`~onboard.io.mavlink_link.DuplicateSender`, from the link; empty: none): warned once, naming each."""
-        self._hold(
+        self._hold_each(
             "autopilot_duplicate",
-            "; ".join(
+            [
                 f"{d.other[0]}:{d.other[1]} heartbeats as MAVLink system {d.sysid} component {d.compid}, which "
                 f"{d.followed[0]}:{d.followed[1]} is and is followed"
                 for d in senders
-            )
-            + (
-                ": two vehicles with one system id on this port (or one autopilot over two routes); everything from "
-                "the second address is refused (rejected: autopilot_duplicate_refused). Give each vehicle its own "
-                "MAV_SYS_ID (PX4 MAV_SYS_ID, ArduPilot SYSID_THISMAV) or its own port"
-                if senders
-                else ""
-            ),
+            ],
+            "two vehicles with one system id on this port (or one autopilot over two routes); everything from the "
+            "second address is refused (rejected: autopilot_duplicate_refused). Give each vehicle its own MAV_SYS_ID "
+            "(PX4 MAV_SYS_ID, ArduPilot SYSID_THISMAV) or its own port",
         )
 
     def utc(self, now_s: float, mapping) -> None:
@@ -595,9 +587,9 @@ class Watchdog:
         ``estimator_silent_s``: how long the estimator's worker process has answered nothing (the cause the message
         names instead of the CPU when frames are not being dropped); ``quota_bound``: whether its CPU quota ran out
         in the last interval (False: a quota that did not bind, so other work on the computer took the CPU; None:
-        unknown), which decides the advice; ``stalled_s``: the longest time the daemon's main loop did not turn at
-        all since the overload's frames began to be lost (a stopped process, a paused or swapping computer), named
-        as the cause instead of the CPU share when it is at least :data:`STALL_NAMED_S`."""
+        unknown), which decides the advice; ``stalled_s``: how long the daemon's main loop last stood still, when that
+        was within :data:`OVERLOAD_CLEAR_S` (a stopped process, a paused or swapping computer; 0: none), named as the
+        cause instead of the CPU share when it is at least :data:`STALL_NAMED_S`."""
         counts = (int(frames_dropped), int(estimates_stale))
         last, self._load_counts = self._load_counts, counts
         if last is None:
@@ -671,6 +663,10 @@ class Watchdog:
             self._log.warning("%s: %s", code, message)
         else:
             self._log.info("%s again (warned before): %s", code, message)
+
+    def _hold_each(self, code: str, items: list[str], consequence: str) -> None:
+        """:meth:`_hold` of one clause per item, then ``consequence`` after a colon; cleared with no item."""
+        self._hold(code, "; ".join(items) + (f": {consequence}" if items else ""))
 
     def _hold(self, code: str, message: object) -> None:
         """Raise ``code`` with ``message`` while the condition holds (a message), clear it when not (a falsy one)."""
