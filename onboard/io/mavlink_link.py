@@ -747,7 +747,7 @@ class MavlinkLink:
 
     def _peer_alive(self, now: float) -> bool:
         """Whether the followed autopilot is alive: its newest heartbeat within ``heartbeat_timeout_s``, the window
-        the link calls it connected by (and the unpinned lock tells a gap by)."""
+        the link calls it connected by (:meth:`tick` marks it lost past it; the unpinned lock tells a gap by it)."""
         last = self._last_hb_rx_s
         return last is not None and now - last <= self.config.heartbeat_timeout_s
 
@@ -972,7 +972,7 @@ class MavlinkLink:
         if (  # before the closed transport's return: a link whose connection is gone times out as well
             self.state == LINK_CONNECTED
             and self._last_hb_rx_s is not None  # connected: a heartbeat came
-            and now - self._last_hb_rx_s > self.config.heartbeat_timeout_s
+            and not self._peer_alive(now)
         ):
             self._mark_lost()
             self._counters.count("autopilot_lost", f"no heartbeat for {now - self._last_hb_rx_s:.1f} s")
