@@ -91,7 +91,7 @@ from onboard.imaging.objects_model import (
     unit_vector,
 )
 from onboard.imaging.preprocess import ImagingParams, check_frame
-from onboard.imaging.tbd import TbdParams, TrackBeforeDetect, frame_periods, frame_steps
+from onboard.imaging.tbd import TbdParams, TrackBeforeDetect, frame_steps
 
 __all__ = [
     "GREY16_PER_GREY8",
@@ -346,15 +346,14 @@ class ObjectTracker:
         image = check_frame(image)
         self._frame_index += 1
         self.frame_steps = frame_steps(self._last_time_us, time_boot_us, self.frame_rate_hz)
-        gap_s = frame_periods(self._last_time_us, time_boot_us, self.frame_rate_hz) / self.frame_rate_hz
-        if self._last_time_us is not None and time_boot_us is not None and time_boot_us < self._last_time_us:
-            # the frames' time going back: the stream restarted (the daemon takes no frame out of order), its
-            # tracks' predictions of another time (a restarted simulator's first frames had the old primary coast 45
-            # frames off the image)
+        if self._last_time_us is not None and time_boot_us is not None:
             gap_s = (time_boot_us - self._last_time_us) * 1e-6
+            # more frames missing than a track coasts, or the frames' time going back: the stream restarted (the
+            # daemon takes no frame out of order), its tracks' predictions of another time (a restarted simulator's
+            # first frames had the old primary coast 45 frames off the image)
+            if gap_s < 0.0 or round(gap_s * self.frame_rate_hz) - 1 > self.params.coast_frames:
+                self._forget_after_gap(gap_s)
         self._last_time_us = time_boot_us
-        if gap_s < 0.0 or round(gap_s * self.frame_rate_hz) - 1 > self.params.coast_frames:  # frames missing
-            self._forget_after_gap(gap_s)
         for t in (t for t in self._tracks if 2 * t.dim_hits < t.hits):  # dropped frames (see tbd.frame_steps)
             t.los = unit_vector(t.los + (self.frame_steps - 1) * t.rate)
         if not callable(R_ned_from_cam):

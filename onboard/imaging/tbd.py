@@ -63,7 +63,7 @@ from onboard.imaging.background_difference import rotation_shift_px
 from onboard.imaging.clutter import PointCandidate, noise_window_cells
 from onboard.imaging.detect import Detection
 
-__all__ = ["TbdParams", "TrackBeforeDetect", "frame_periods", "frame_steps"]
+__all__ = ["TbdParams", "TrackBeforeDetect", "frame_steps"]
 
 log = logging.getLogger(__name__)
 
@@ -88,15 +88,9 @@ def frame_steps(last_us: int | None, now_us: int | None, frame_rate_hz: float) -
     by this stage: a dim target's rate, from integrated centres that scatter by a pixel, is too noisy to carry
     over a long gap (0.3 px/frame of noise, 14 frames: lost in a replay of C4 in the loop), and this stage
     does not scale its hypotheses either (see :meth:`TrackBeforeDetect.update`)."""
-    return min(max(round(frame_periods(last_us, now_us, frame_rate_hz)), 1), MAX_FRAME_STEPS)
-
-
-def frame_periods(last_us: int | None, now_us: int | None, frame_rate_hz: float) -> float:
-    """Frame periods from a frame stamped ``last_us`` to one stamped ``now_us`` (us), not rounded nor capped: 1.0
-    without both stamps or when time goes back."""
     if last_us is None or now_us is None or now_us <= last_us:
-        return 1.0
-    return (now_us - last_us) * frame_rate_hz / US_PER_S
+        return 1
+    return min(max(round((now_us - last_us) * frame_rate_hz / US_PER_S), 1), MAX_FRAME_STEPS)
 
 
 @dataclass(frozen=True)
