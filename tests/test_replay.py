@@ -16,15 +16,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from onboard.app.replay import (
-    EXIT_CONFIG,
-    EXIT_DIFFERENT,
-    EXIT_OK,
-    compare_objects,
-    compare_tracks,
-    compare_within_sigma,
-    main,
-)
+from onboard.app.replay import EXIT_CONFIG, EXIT_DIFFERENT, EXIT_OK, main
+from onboard.app.replay_compare import compare_objects, compare_tracks, compare_within_sigma
 from tests.process_helpers import WatchedCommand
 from tests.recording_edits import rewrite_recording
 
@@ -130,7 +123,7 @@ def test_a_replay_that_tracks_another_object_differs_however_wide_the_covariance
     while the replay stayed on the first.  Two unobservable estimates of targets 350 m apart were within each
     other's 3 sigma, and a worker's recording compared 'within sigma' on every frame; a frame tracking another
     object is now counted apart, not compared, and is a difference whatever the worker."""
-    from onboard.app.replay import beyond_a_workers_sigma
+    from onboard.app.replay_compare import beyond_a_workers_sigma
 
     wide = [[1e5, 0.0, 0.0], [0.0, 1e5, 0.0], [0.0, 0.0, 1e5]]  # ~316 m a side: unobservable
     recorded = [{**_track(k, [0.0, 0.0, 0.0], wide), "track_id": 3 if k < 3 else 8} for k in range(1, 6)]
@@ -145,7 +138,7 @@ def test_a_replay_that_tracks_another_object_differs_however_wide_the_covariance
 def test_a_workers_recording_differs_only_beyond_what_its_timing_explains():
     """A few tenths of a per cent of the positions a little beyond 3 sigma are chance (a newcomer's recording of the
     shipped flow: 3 of 691, at most 3.7 sigma); over 1 % beyond, or one past 6 sigma, is a difference."""
-    from onboard.app.replay import SigmaComparison, beyond_a_workers_sigma
+    from onboard.app.replay_compare import SigmaComparison, beyond_a_workers_sigma
 
     assert not beyond_a_workers_sigma(SigmaComparison(691, 3, 3.7, 0, 3.0))
     assert beyond_a_workers_sigma(SigmaComparison(691, 8, 4.1, 0, 3.0))

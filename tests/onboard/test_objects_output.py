@@ -116,7 +116,8 @@ def test_the_recording_holds_every_frames_objects_with_their_schema_read_by_the_
 
 
 def test_replay_reads_the_objects_back_and_makes_the_same_ones(recorded):
-    from onboard.app.replay import compare_objects, config_of, load_recording, replay
+    from onboard.app.replay import config_of, load_recording, replay
+    from onboard.app.replay_compare import compare_objects
 
     path, _, sent, tracks = recorded
     rec = load_recording(str(path))
