@@ -3,7 +3,7 @@
 Pure core: no pymavlink, no sockets.  The MAVLink adapter (:mod:`onboard.io.mavlink_link`) sends the
 requests and feeds each answer to :meth:`ClockSync.add_exchange`; the daemon then puts camera frames,
 stamped on the local clock (ns), on the autopilot's ``time_boot_us`` with :meth:`ClockSync.to_boot_us`.
-The filter's settings are :class:`~onboard.core.pose.ClockSyncConfig`.
+The filter's settings are :class:`ClockSyncConfig`.
 
 Rejection reasons (counted in the shared :class:`~onboard.core.counters.RejectCounter`):
 ``timesync_invalid`` (not integers, or ``tc1`` <= 0), ``timesync_rtt`` (round trip negative or longer
@@ -15,19 +15,66 @@ re-seeds from them).
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
 from typing import Generic, TypeVar
 
 import numpy as np
 
+from onboard.core.checks import is_positive_int, require_each
 from onboard.core.counters import RejectCounter
-from onboard.core.pose import NS_PER_US, ClockSyncConfig
+from onboard.core.errors import ConfigError
 
-__all__ = ["ClockSync", "JumpWindow"]
+__all__ = ["ClockSync", "ClockSyncConfig", "JumpWindow"]
 
 log = logging.getLogger(__name__)
 
+NS_PER_US = 1_000
+NS_PER_S = 1_000_000_000
+
 S = TypeVar("S")
+
+
+@dataclass(frozen=True)
+class ClockSyncConfig:
+    """TIMESYNC filter settings (ns).
+
+    ``max_rtt_ns``: exchanges with a longer round trip are discarded.  ``window``: exchanges kept.
+    ``min_samples``: exchanges before :attr:`ClockSync.synced`.  ``rtt_floor_ns``: weights are
+    ``1 / (rtt + rtt_floor)^2``.  ``min_skew_span_ns``: history span before a drift (skew) is fitted.
+    ``jump_ns``/``jump_count``: that many consecutive exchanges off the estimate by more than
+    ``jump_ns`` (plus half their RTT) mean the remote clock restarted: the filter re-seeds from them.
+    """
+
+    max_rtt_ns: int = 50_000_000
+    window: int = 64
+    min_samples: int = 3
+    rtt_floor_ns: int = 200_000
+    min_skew_span_ns: int = 20 * NS_PER_S
+    max_skew_ppm: float = 1000.0
+    jump_ns: int = 50_000_000
+    jump_count: int = 3
+
+    def __post_init__(self) -> None:
+        require_each(
+            self,
+            (
+                "max_rtt_ns",
+                "window",
+                "min_samples",
+                "rtt_floor_ns",
+                "min_skew_span_ns",
+                "jump_ns",
+                "jump_count",
+            ),
+            is_positive_int,
+            ConfigError,
+            "ClockSyncConfig.{name} must be a positive integer, got {value!r}",
+        )
+        if self.min_samples > self.window:
+            raise ConfigError(f"ClockSyncConfig.min_samples ({self.min_samples}) must be <= window ({self.window})")
+        if not (math.isfinite(self.max_skew_ppm) and self.max_skew_ppm >= 0):
+            raise ConfigError(f"ClockSyncConfig.max_skew_ppm must be >= 0, got {self.max_skew_ppm!r}")
 
 
 class JumpWindow(Generic[S]):

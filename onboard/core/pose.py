@@ -114,13 +114,11 @@ import enum
 import logging
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
 
 import numpy as np
 
-from onboard.core.checks import is_positive_int, require_each
 from onboard.core.counters import RejectCounter
-from onboard.core.errors import ConfigError, InputError
+from onboard.core.errors import InputError
 from onboard.core.frames import (
     Q_MOUNT_FROM_CAM,
     QUAT_NORM_TOL,
@@ -148,14 +146,11 @@ from onboard.core.sample_stream import SampleStream
 __all__ = [
     "GimbalReference",
     "PoseBuffer",
-    "ClockSyncConfig",
 ]
 
 log = logging.getLogger(__name__)
 
 US_PER_S = 1_000_000
-NS_PER_US = 1_000
-NS_PER_S = 1_000_000_000
 ZERO_QUAT_NORM = 1e-6  # a quaternion shorter than this is "zero", not merely "not unit"
 
 
@@ -961,48 +956,3 @@ class PoseBuffer:
             q_ned_from_gimbal = q_ref_from_gimbal
         q_mount_from_ned = quat_conjugate1(quat_multiply1(q_ned_from_body, self._mount_floats()[1]))
         return quat_normalize1(quat_multiply1(q_mount_from_ned, q_ned_from_gimbal))
-
-
-# --------------------------------------------------------------------------- clock sync
-
-
-@dataclass(frozen=True)
-class ClockSyncConfig:
-    """TIMESYNC filter settings (ns).
-
-    ``max_rtt_ns``: exchanges with a longer round trip are discarded.  ``window``: exchanges kept.
-    ``min_samples``: exchanges before :attr:`ClockSync.synced`.  ``rtt_floor_ns``: weights are
-    ``1 / (rtt + rtt_floor)^2``.  ``min_skew_span_ns``: history span before a drift (skew) is fitted.
-    ``jump_ns``/``jump_count``: that many consecutive exchanges off the estimate by more than
-    ``jump_ns`` (plus half their RTT) mean the remote clock restarted: the filter re-seeds from them.
-    """
-
-    max_rtt_ns: int = 50_000_000
-    window: int = 64
-    min_samples: int = 3
-    rtt_floor_ns: int = 200_000
-    min_skew_span_ns: int = 20 * NS_PER_S
-    max_skew_ppm: float = 1000.0
-    jump_ns: int = 50_000_000
-    jump_count: int = 3
-
-    def __post_init__(self) -> None:
-        require_each(
-            self,
-            (
-                "max_rtt_ns",
-                "window",
-                "min_samples",
-                "rtt_floor_ns",
-                "min_skew_span_ns",
-                "jump_ns",
-                "jump_count",
-            ),
-            is_positive_int,
-            ConfigError,
-            "ClockSyncConfig.{name} must be a positive integer, got {value!r}",
-        )
-        if self.min_samples > self.window:
-            raise ConfigError(f"ClockSyncConfig.min_samples ({self.min_samples}) must be <= window ({self.window})")
-        if not (math.isfinite(self.max_skew_ppm) and self.max_skew_ppm >= 0):
-            raise ConfigError(f"ClockSyncConfig.max_skew_ppm must be >= 0, got {self.max_skew_ppm!r}")

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from onboard.core.clock_sync import ClockSync
-from onboard.core.pose import ClockSyncConfig
+from onboard.core.clock_sync import ClockSync, ClockSyncConfig
+from onboard.core.errors import ConfigError
 
 SKEW_ATOL_PPM = 5.0  # a few times the spread of the fitted skew over seeds (60 exchanges, delays up to 4 ms)
 BOOT_ATOL_US = 500  # 0.5 ms: a quarter of the mean one-way delay (about 2 ms), so a delay left in the offset is caught
@@ -24,6 +24,11 @@ def simulate_timesync(
         cs.add_exchange(int(t), int(tc1), int(t_remote_local + d_down))
         t += period_ns
     return t
+
+
+def test_config_validates():
+    with pytest.raises(ConfigError, match="min_samples"):
+        ClockSyncConfig(window=2, min_samples=3)
 
 
 def test_clock_sync_offset_and_skew():

@@ -8,9 +8,8 @@ import logging
 
 import pytest
 
-from onboard.core.clock_sync import ClockSync
+from onboard.core.clock_sync import ClockSync, ClockSyncConfig
 from onboard.core.counters import RejectCounter
-from onboard.core.pose import ClockSyncConfig
 
 MAX_RTT_NS = 50_000_000  # 50 ms, the default bound
 SHORT_RTT_NS = 5_000_000  # 5 ms: the loopback demo's steady round trip

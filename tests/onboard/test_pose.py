@@ -27,7 +27,6 @@ from onboard.core.frames import (
     rotvec_from_quat,
 )
 from onboard.core.pose import (
-    ClockSyncConfig,
     GimbalReference,
     PoseBuffer,
 )
@@ -547,8 +546,6 @@ def test_configs_validate():
         PoseConfig(position_interp="cubic")
     with pytest.raises(ConfigError, match="position_max_gap_ms"):
         PoseConfig(window_s=0.1, position_max_gap_ms=300.0)
-    with pytest.raises(ConfigError, match="min_samples"):
-        ClockSyncConfig(window=2, min_samples=3)
 
 
 # --------------------------------------------------------------------------- properties
