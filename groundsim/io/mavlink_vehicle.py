@@ -2,7 +2,7 @@
 
 HEARTBEAT, SYSTEM_TIME, #31, #33, #285, TIMESYNC and COMMAND_ACK are encoded by
 :mod:`onboard.io.mavlink_wire` (the daemon decodes them with the same module); the connection string
-follows its one grammar (:func:`onboard.io.mavlink_wire.parse_endpoint`).  This module is the link and its
+follows the one grammar (:func:`onboard.io.mavlink_endpoint.parse_endpoint`).  This module is the link and its
 loop (streams' schedule, requests, services); the state and what each message says are
 :mod:`groundsim.io.vehicle_messages` (no socket, no clock).
 
@@ -179,6 +179,7 @@ from groundsim.io.vehicle_messages import (
     sys_status,
 )
 from onboard.core.errors import ConfigError, InputError, IrtrackError
+from onboard.io.mavlink_endpoint import parse_endpoint
 from onboard.io.mavlink_transport import new_parser, new_signing, signature_refusal
 from onboard.io.mavlink_wire import (
     INT16_MAX,
@@ -191,7 +192,6 @@ from onboard.io.mavlink_wire import (
     command_ack_message,
     connect,
     mavlink2,
-    parse_endpoint,
     requested_interval,
 )
 

@@ -40,7 +40,8 @@ class ScriptedAutopilot:
     ) -> None:
         import time
 
-        from onboard.io.mavlink_wire import connect, mavlink2, parse_endpoint
+        from onboard.io.mavlink_endpoint import parse_endpoint
+        from onboard.io.mavlink_wire import connect, mavlink2
 
         self.mav = mavlink2
         self.conn = connect(parse_endpoint(f"udpout:{host}:{port}"), sysid, compid)

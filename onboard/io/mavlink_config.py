@@ -9,14 +9,14 @@ from pymavlink.dialects.v20 import common as mavlink2
 
 from onboard.core.errors import ConfigError
 from onboard.core.schema import Integer, Invalid, Number, SchemaError, Text, config_dataclass
+from onboard.io.mavlink_endpoint import parse_endpoint
 from onboard.io.mavlink_signing import SigningKeyError, load_signing_key
-from onboard.io.mavlink_wire import parse_endpoint
 
 __all__ = ["DEFAULT_CONNECTION", "MavlinkConfig", "parse_connection"]
 
 DEFAULT_CONNECTION = "udpin:127.0.0.1:14540"
 
-#: one grammar for every MAVLink connection string: :func:`onboard.io.mavlink_wire.parse_endpoint`
+#: one grammar for every MAVLink connection string: :func:`onboard.io.mavlink_endpoint.parse_endpoint`
 parse_connection = parse_endpoint
 
 #: MAVLink system and component ids

@@ -18,7 +18,8 @@ from concurrent.futures import Future
 
 from pymavlink.dialects.v20 import common as mavlink2
 
-from onboard.io.mavlink_wire import MavlinkEndpoint, use_mavlink2
+from onboard.io.mavlink_endpoint import MavlinkEndpoint
+from onboard.io.mavlink_wire import use_mavlink2
 
 __all__ = [
     "MAX_DATAGRAM_PARSE_BYTES",

@@ -1,4 +1,4 @@
-"""MAVLink on the wire, once: typed values <-> MAVLink 2 messages, the connection-string grammar, MAVLink 2.
+"""MAVLink on the wire, once: typed values <-> MAVLink 2 messages, MAVLink 2 connections.
 
 Every sender and reader of the project goes through this module (one encoder, so they cannot disagree): the daemon's
 autopilot link (:mod:`onboard.io.mavlink_link`, decode side and its output), the camera component
@@ -55,10 +55,7 @@ zero positions, dropout sentinels included); the pose buffer decides and counts.
 The Track mapping onto #275 / #276 (:func:`image_status_fields`, :func:`geo_status_fields`) is here too:
 the core's :class:`~onboard.core.track.Track` knows no message.
 
-Connection strings (:func:`parse_endpoint`, one grammar for the daemon, the camera endpoints and the
-simulator): ``udpin:HOST:PORT`` (listen), ``udp:HOST:PORT`` (= udpin), ``udpout:HOST:PORT`` (send),
-``tcp:HOST:PORT`` (connect), ``tcpin:HOST:PORT`` (listen), ``serial:/dev/ttyX[:BAUD]`` (also
-``serial:///dev/ttyX:BAUD``), ``/dev/ttyX[:BAUD]``, ``/dev/ttyX,BAUD`` and ``COMn``; PORT 1..65535.
+Connection strings, the one grammar :func:`connect` opens, are parsed by :mod:`onboard.io.mavlink_endpoint`.
 
 MAVLink 2, one way (:func:`mavlink2_codec`, :func:`use_mavlink2`, :func:`connect`): pymavlink picks its
 wire version from the process environment (``MAVLINK20``) and may switch a connection's dialect when
@@ -69,7 +66,6 @@ replaced by a MAVLink 2 common one and the auto-switch is turned off; the enviro
 from __future__ import annotations
 
 import math
-import re
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -77,8 +73,10 @@ from typing import Any
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink2
 
-from onboard.core.errors import ConfigError, InputError
+from onboard.core.errors import InputError
 from onboard.core.pose import GimbalReference
+from onboard.io.mavlink_endpoint import MavlinkEndpoint
+from onboard.io.mavlink_endpoint import parse_endpoint as parse_endpoint  # gcs_link.py imports it from here
 
 __all__ = [
     "mavlink2",
@@ -88,9 +86,6 @@ __all__ = [
     "pack",
     "parse_datagram",
     "wire_roundtrip",
-    "DEFAULT_SERIAL_BAUD",
-    "MavlinkEndpoint",
-    "parse_endpoint",
     "time_boot_ms_from_us",
     "Heartbeat",
     "SystemTime",
@@ -128,7 +123,6 @@ __all__ = [
     "UINT32_MAX",
 ]
 
-DEFAULT_SERIAL_BAUD = 115200
 INT16_MAX = 2**15 - 1
 INT32_MAX = 2**31 - 1
 UINT16_MAX = 2**16 - 1
@@ -221,73 +215,6 @@ _ENCODER = mavlink2.MAVLink(None)
 def wire_fields(msg) -> dict[str, Any]:
     """A message's fields in wire units by their dialect names (the inverse of :func:`message_from_fields`)."""
     return {name: getattr(msg, name) for name in msg.get_fieldnames()}
-
-
-# --------------------------------------------------------------------------- connection strings
-
-
-@dataclass(frozen=True)
-class MavlinkEndpoint:
-    """A parsed connection string: ``kind`` (udpin, udpout, tcp, tcpin, serial), pymavlink ``device``, ``baud``."""
-
-    kind: str
-    device: str
-    baud: int = DEFAULT_SERIAL_BAUD
-
-    @property
-    def host(self) -> str | None:
-        """HOST of a network endpoint, None for serial."""
-        return None if self.kind == "serial" else self.device.split(":")[1]
-
-    @property
-    def port(self) -> int | None:
-        """PORT of a network endpoint, None for serial."""
-        return None if self.kind == "serial" else int(self.device.split(":")[2])
-
-    @property
-    def listens(self) -> bool:
-        return self.kind in ("udpin", "tcpin")
-
-
-DEFAULT_CONNECTION_EXAMPLE = "udpin:0.0.0.0:14540"
-_HOSTPORT = re.compile(r"^(?P<host>[^:\s]+):(?P<port>\d+)$")
-
-
-def parse_endpoint(connection: str, field: str = "--mavlink") -> MavlinkEndpoint:
-    """Validate a connection string (grammar in the module docstring).  Raises :class:`ConfigError` naming ``field``."""
-    if not isinstance(connection, str) or not connection.strip():
-        raise ConfigError(
-            f"{field}: expected a MAVLink connection like {DEFAULT_CONNECTION_EXAMPLE!r}, got {connection!r}"
-        )
-    text = connection.strip()
-    for prefix in ("udpin", "udpout", "udp", "tcpin", "tcp"):
-        if text.startswith(prefix + ":"):
-            m = _HOSTPORT.match(text[len(prefix) + 1 :])
-            if not m or not 1 <= int(m["port"]) <= 65535:
-                raise ConfigError(f"{field}: {prefix} needs HOST:PORT with PORT in 1..65535, got {connection!r}")
-            kind = "udpin" if prefix == "udp" else prefix
-            return MavlinkEndpoint(kind, f"{kind}:{m['host']}:{int(m['port'])}")
-    if text.startswith("serial:"):
-        rest = text[len("serial:") :]
-        return _parse_serial(rest[2:] if rest.startswith("//") else rest, connection, field)
-    if text.startswith("/dev/") or text.upper().startswith("COM"):
-        return _parse_serial(text, connection, field)
-    raise ConfigError(
-        f"{field}: unknown MAVLink connection {connection!r}; expected udpin:HOST:PORT, udpout:HOST:PORT, "
-        "tcp:HOST:PORT, tcpin:HOST:PORT or serial:/dev/ttyX[:BAUD]"
-    )
-
-
-def _parse_serial(rest: str, original: str, field: str) -> MavlinkEndpoint:
-    m = re.match(r"^(?P<dev>[^,:]+)(?:[,:](?P<baud>[^,:]*))?$", rest)
-    if not m or not m["dev"]:
-        raise ConfigError(f"{field}: serial needs a device path like /dev/ttyS0[:BAUD], got {original!r}")
-    baud = DEFAULT_SERIAL_BAUD
-    if m["baud"] is not None:
-        if not m["baud"].isdigit() or int(m["baud"]) <= 0:
-            raise ConfigError(f"{field}: serial baud must be a positive integer, got {m['baud']!r} in {original!r}")
-        baud = int(m["baud"])
-    return MavlinkEndpoint("serial", m["dev"], baud)
 
 
 # --------------------------------------------------------------------------- field checks (encoding only)

@@ -23,7 +23,8 @@ from groundsim.io.mavlink_vehicle import (
 from groundsim.io.ports import free_udp_port
 from onboard.core.errors import ConfigError, InputError, IrtrackError
 from onboard.core.frames import euler_from_quat, quat_from_euler, quat_multiply
-from onboard.io.mavlink_wire import mavlink2, parse_endpoint
+from onboard.io.mavlink_endpoint import parse_endpoint
+from onboard.io.mavlink_wire import mavlink2
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -566,7 +567,7 @@ def test_malformed_connection_strings(connection):
 
 
 def test_the_vehicle_takes_the_daemons_connection_grammar():
-    """One parser (onboard.io.mavlink_wire.parse_endpoint) for the simulator and the daemon."""
+    """One parser (onboard.io.mavlink_endpoint.parse_endpoint) for the simulator and the daemon."""
     ep = parse_endpoint("udpout:127.0.0.1:14540")
     assert (ep.kind, ep.host, ep.port) == ("udpout", "127.0.0.1", 14540)
     ep = parse_endpoint("udp:0.0.0.0:14540")

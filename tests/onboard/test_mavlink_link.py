@@ -35,12 +35,10 @@ from onboard.io.mavlink_wire import (
     GimbalDeviceAttitudeStatus,
     GpsRawInt,
     Heartbeat,
-    MavlinkEndpoint,
     SystemTime,
     Timesync,
     command_ack_message,
     pack,
-    parse_endpoint,
 )
 from tests.fakes import FakeAutopilot, FakeClock, silent_tcp_server
 
@@ -581,36 +579,6 @@ def test_image_status_rejects_bad_fields_by_name(rig):
         rig.link.send_tracking_image_status(CameraTrackingImageStatus(1, 3))
 
 
-# --------------------------------------------------------------------------- connection strings (pure)
-
-
-@pytest.mark.parametrize(
-    "text, expected",
-    [
-        ("udpin:0.0.0.0:14540", MavlinkEndpoint("udpin", "udpin:0.0.0.0:14540")),
-        ("udp:127.0.0.1:14550", MavlinkEndpoint("udpin", "udpin:127.0.0.1:14550")),
-        ("udpout:10.0.0.2:14555", MavlinkEndpoint("udpout", "udpout:10.0.0.2:14555")),
-        ("tcp:127.0.0.1:5760", MavlinkEndpoint("tcp", "tcp:127.0.0.1:5760")),
-        ("tcpin:0.0.0.0:5760", MavlinkEndpoint("tcpin", "tcpin:0.0.0.0:5760")),
-        ("serial:/dev/ttyS1:921600", MavlinkEndpoint("serial", "/dev/ttyS1", 921600)),
-        ("serial:///dev/ttyACM0:57600", MavlinkEndpoint("serial", "/dev/ttyACM0", 57600)),
-        ("/dev/ttyUSB0,115200", MavlinkEndpoint("serial", "/dev/ttyUSB0", 115200)),
-        ("/dev/ttyTHS1", MavlinkEndpoint("serial", "/dev/ttyTHS1", 115200)),
-    ],
-)
-def test_parse_endpoint_forms(text, expected):
-    assert parse_endpoint(text) == expected
-
-
-@pytest.mark.parametrize(
-    "text",
-    ["", "udpin:14540", "udpin:host:0", "udpin:host:70000", "tcp:host", "ftp:x:1", "serial:/dev/ttyS1:fast", "serial:"],
-)
-def test_parse_endpoint_rejects_with_field_name(text):
-    with pytest.raises(ConfigError, match="--mavlink"):
-        parse_endpoint(text)
-
-
 def test_bad_rates_and_config_are_config_errors():
     pose = PoseBuffer()
     with pytest.raises(ConfigError, match="attitude_rate_hz"):
@@ -793,7 +761,7 @@ def test_a_name_lookup_under_way_does_not_hold_the_process_at_exit():
     script = textwrap.dedent("""
         import socket, time
         import onboard.io.mavlink_transport as t
-        from onboard.io.mavlink_wire import parse_endpoint
+        from onboard.io.mavlink_endpoint import parse_endpoint
         real = socket.getaddrinfo
         def silent(host, *a):
             time.sleep(30)  # a name server that does not answer

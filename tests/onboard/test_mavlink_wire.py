@@ -11,7 +11,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 from pymavlink.dialects.v20 import common as mav
 
-from onboard.core.errors import ConfigError, InputError
+from onboard.core.errors import InputError
 from onboard.core.pose import GimbalReference
 from onboard.io import mavlink_wire as wire
 from onboard.io.mavlink_wire import (
@@ -20,7 +20,6 @@ from onboard.io.mavlink_wire import (
     command_ack_message,
     message_from_fields,
     parse_datagram,
-    parse_endpoint,
     set_message_interval_message,
     wire_fields,
     wire_roundtrip,
@@ -246,9 +245,3 @@ def test_decoding_passes_hostile_values_on_for_the_pose_buffer_to_judge():
     sentinel = mav.MAVLink_global_position_int_message(5, 2**31 - 1, 2**31 - 1, 0, 0, 0, 0, 0, 65535)
     back = wire.GlobalPositionInt.from_message(wire_roundtrip(sentinel))
     assert back.lat_deg == pytest.approx(214.7483647) and math.isnan(back.heading_rad)
-
-
-@pytest.mark.parametrize("text", ["udpbcast:1.2.3.4:14550", "udpin:host:0", "udpout:a:b:1", "ftp:x:1", ""])
-def test_one_grammar_refuses_what_neither_side_uses(text):
-    with pytest.raises(ConfigError, match="--mavlink"):
-        parse_endpoint(text)
