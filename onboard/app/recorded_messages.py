@@ -11,7 +11,8 @@ from typing import Any
 
 from onboard.core.track import TRACK_SCHEMA
 from onboard.io.foxglove_messages import FRAME_INPUT_SCHEMA, IMAGING_POSE_SCHEMA, OBJECTS_SCHEMA, TRUTH_SCHEMA
-from onboard.io.record import FRAME_INPUT_TOPIC, IMAGING_POSE_TOPIC, TRUTH_TOPIC, pose_from_json
+from onboard.io.pose_json import pose_from_json
+from onboard.io.record import FRAME_INPUT_TOPIC, IMAGING_POSE_TOPIC, TRUTH_TOPIC
 
 __all__ = [
     "READ_VERSIONS",

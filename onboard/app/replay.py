@@ -107,7 +107,8 @@ from onboard.core.errors import InputError, IrtrackError  # noqa: E402
 from onboard.core.status import STATUS_SCHEMA  # noqa: E402
 from onboard.io.foxglove_messages import OBJECTS_SCHEMA, irframe_from_rawimage  # noqa: E402
 from onboard.io.mcap_read import FrameRef, read_recording  # noqa: E402
-from onboard.io.record import FRAME_INPUT_TOPIC, IMAGING_POSE_TOPIC, TRUTH_TOPIC, pose_from_json  # noqa: E402
+from onboard.io.pose_json import pose_from_json  # noqa: E402
+from onboard.io.record import FRAME_INPUT_TOPIC, IMAGING_POSE_TOPIC, TRUTH_TOPIC  # noqa: E402
 
 __all__ = [
     "Recording",

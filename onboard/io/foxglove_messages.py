@@ -87,7 +87,7 @@ _FRAME_STAMP = {"seq": {"type": "integer"}, "time_boot_us": {"type": "integer"}}
 _QUAT = {"type": "array", "items": {"type": ["number", "null"]}, "minItems": 4, "maxItems": 4}
 _INT_OR_NULL = {"type": ["integer", "null"]}
 _VEC3_NULLS = {**_VEC3, "items": {"type": ["number", "null"]}}  # a non-finite component written as null
-#: a pose as :func:`onboard.io.record.pose_to_json` writes it (null where it was not looked up or not known)
+#: a pose as :func:`onboard.io.pose_json.pose_to_json` writes it (null where it was not looked up or not known)
 _POSE = {
     "type": ["object", "null"],
     "properties": {

@@ -42,8 +42,8 @@ topic                             schema                         encoding       
   the frame's ``seq``.
 * ``irtrack.frame_input/1``: ``{"seq", "time_boot_us", "received_ns", "pose_looked_up": bool,
   "pose": null | PoseAt}``: a frame the pipeline thread took from its queue (in that order), and the
-  interpolated pose it got (:func:`pose_to_json`; floats printed by ``repr``, so they read back bit for
-  bit).  A frame received but never taken was dropped by the queue.  :mod:`onboard.app.replay` feeds
+  interpolated pose it got (:func:`~onboard.io.pose_json.pose_to_json`; floats printed by ``repr``, so they read
+  back bit for bit).  A frame received but never taken was dropped by the queue.  :mod:`onboard.app.replay` feeds
   these frames with these poses through a new :class:`~onboard.pipeline.frame_pipeline.FramePipeline`.
 * ``irtrack.objects/1``: the message published on ``irtrack/<v>/objects`` (:func:`onboard.imaging.objects.objects_message`:
   every confirmed or coasting object of the frame with its id, state, centre, box, line of sight and score,
@@ -123,11 +123,7 @@ import time
 from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING, Annotated, Any, Literal
 
-import numpy as np
-
 from onboard.core.errors import InputError
-from onboard.core.frames import GeodeticOrigin, check_unit_quat
-from onboard.core.pose_types import PoseAt, PoseSample
 from onboard.core.schema import Bool, Integer, Number, Text, config_dataclass
 from onboard.core.status import STATUS_SCHEMA
 from onboard.core.track import TRACK_SCHEMA, track_to_bytes
@@ -145,6 +141,7 @@ from onboard.io.foxglove_messages import (
     rawimage_pieces,
     truth_objects_annotations,
 )
+from onboard.io.pose_json import pose_to_json
 from onboard.io.record_files import free_disk_bytes, free_recording_path, rotated_path
 from onboard.io.worker_queue import stop_and_join
 
@@ -166,8 +163,6 @@ __all__ = [
     "RecordConfig",
     "FlightRecorder",
     "RecordingPoseSource",
-    "pose_to_json",
-    "pose_from_json",
     "mavlink_topic",
 ]
 
@@ -205,94 +200,6 @@ def _os_error_text(exc: OSError) -> str:
 
 _COMPACT_JSON = json.JSONEncoder(separators=(",", ":"))  # json.dumps(obj, separators=(",", ":")), the encoder made once
 _json_str = json.encoder.encode_basestring_ascii  # how json.dumps writes a str (ensure_ascii)
-
-
-def _vec(v) -> list | None:
-    if v is None:
-        return None
-    return [x if math.isfinite(x) else None for x in np.asarray(v, dtype=float).ravel().tolist()]
-
-
-def _arr(v) -> np.ndarray:
-    return np.array(v, dtype=float)  # a JSON null (None) becomes NaN
-
-
-def pose_to_json(pose: PoseAt | None) -> dict[str, Any] | None:
-    """A :class:`~onboard.core.pose_types.PoseAt` as a JSON-able dict (NaN as null); :func:`pose_from_json` inverts it."""
-    if pose is None:
-        return None
-    b, o = pose.body, pose.origin
-    return {
-        "time_boot_us": int(b.time_boot_us),
-        "p_ned_m": _vec(b.p_ned_m),
-        "v_ned_mps": _vec(b.v_ned_mps),
-        "q_ned_from_body": _vec(b.q_ned_from_body),
-        "p_cam_ned_m": _vec(pose.p_cam_ned_m),
-        "q_ned_from_cam": _vec(pose.q_ned_from_cam),
-        "q_mount_from_gimbal": _vec(pose.q_mount_from_gimbal),
-        "origin": {"lat_deg": float(o.lat_deg), "lon_deg": float(o.lon_deg), "alt_m": float(o.alt_m)},
-        "att_span_us": int(pose.att_span_us),
-        "pos_span_us": int(pose.pos_span_us),
-        "gimbal_span_us": None if pose.gimbal_span_us is None else int(pose.gimbal_span_us),
-        "epoch": int(pose.epoch),
-        "discontinuities": int(pose.discontinuities),
-        "att_extrapolated_us": int(pose.att_extrapolated_us),
-        "pos_extrapolated_us": int(pose.pos_extrapolated_us),
-        "gimbal_extrapolated_us": None if pose.gimbal_extrapolated_us is None else int(pose.gimbal_extrapolated_us),
-        "sigma_extrapolation_rad": float(pose.sigma_extrapolation_rad),
-        "sigma_extrapolation_m": float(pose.sigma_extrapolation_m),
-    }
-
-
-def pose_from_json(obj: Mapping[str, Any] | None, where: str = "pose") -> PoseAt | None:
-    """The :class:`~onboard.core.pose_types.PoseAt` of :func:`pose_to_json`'s dict (None for None); raises
-    :class:`InputError` naming ``where`` and the field on a malformed one."""
-    if obj is None:
-        return None
-    try:
-        o = obj["origin"]
-        body = PoseSample(
-            int(obj["time_boot_us"]), _arr(obj["p_ned_m"]), _arr(obj["v_ned_mps"]), _arr(obj["q_ned_from_body"])
-        )
-        # the stored body quaternion was already a checked unit quaternion: keep its exact bits
-        object.__setattr__(body, "q_ned_from_body", _frozen(_arr(obj["q_ned_from_body"])))
-        g = None if obj.get("q_mount_from_gimbal") is None else _arr(obj["q_mount_from_gimbal"])
-        q_cam, p_cam = _arr(obj["q_ned_from_cam"]), _arr(obj["p_cam_ned_m"])
-        # checked, not normalised (the recording's exact bits are replayed): a zero or scaled camera quaternion had
-        # replayed as a line of sight straight down, or as frames without one, with nothing refused
-        check_unit_quat(q_cam, "q_ned_from_cam")
-        if g is not None:
-            check_unit_quat(g, "q_mount_from_gimbal")
-        if p_cam.shape != (3,) or not np.all(np.isfinite(p_cam)):
-            raise ValueError(f"p_cam_ned_m must be 3 finite numbers, got {obj['p_cam_ned_m']!r}")
-        return PoseAt(
-            body=body,
-            p_cam_ned_m=p_cam,
-            q_ned_from_cam=q_cam,
-            q_mount_from_gimbal=g,
-            origin=GeodeticOrigin(float(o["lat_deg"]), float(o["lon_deg"]), float(o["alt_m"])),
-            att_span_us=int(obj["att_span_us"]),
-            pos_span_us=int(obj["pos_span_us"]),
-            gimbal_span_us=obj.get("gimbal_span_us"),
-            epoch=int(obj["epoch"]),
-            att_extrapolated_us=int(obj.get("att_extrapolated_us", 0)),
-            pos_extrapolated_us=int(obj.get("pos_extrapolated_us", 0)),
-            gimbal_extrapolated_us=obj.get("gimbal_extrapolated_us"),
-            sigma_extrapolation_rad=float(obj.get("sigma_extrapolation_rad", 0.0)),
-            sigma_extrapolation_m=float(obj.get("sigma_extrapolation_m", 0.0)),
-            # a recording made before position resets were counted: its reboots are its only breaks
-            discontinuities=int(obj.get("discontinuities", obj["epoch"])),
-        )
-    except KeyError as exc:
-        raise InputError(f"{where}: missing field {exc.args[0]!r}") from None
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"{where}: {exc}") from None
-
-
-def _frozen(a: np.ndarray) -> np.ndarray:
-    a = np.array(a, dtype=float)
-    a.setflags(write=False)
-    return a
 
 
 # --------------------------------------------------------------------------- settings
