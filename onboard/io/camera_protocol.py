@@ -132,6 +132,12 @@ from onboard.io.mavlink_wire import (
     requested_interval,
     wire_fields,
 )
+from onboard.io.status_schedule import (
+    MAX_TRACKING_STATUS_HZ,
+    MIN_TRACKING_STATUS_INTERVAL_S,
+    _interval_s,
+    _next_due,
+)
 
 __all__ = [
     "CameraIdentity",
@@ -211,14 +217,6 @@ STATUSTEXT_MAX_CHARS = 50
 #: a refusal's STATUSTEXT is sent in at most this many chunks (module docstring): 199 bytes of text, room for every
 #: reason of ours; a longer one (an exception's text) is cut
 STATUSTEXT_MAX_CHUNKS = 4
-#: the fastest a ground station may have #275 / #276 sent.  Each describes the newest track, which changes
-#: once per IR frame at most (thermal cores deliver 9 to 60 frames/s, most 25 or 30): a faster stream repeats
-#: the same track, and it shares a telemetry radio with the autopilot's.  SET_MESSAGE_INTERVAL has no upper
-#: rate in common.xml, so a shorter interval is served at this rate, ACCEPTED, and MESSAGE_INTERVAL reports
-#: the interval applied.  The configured defaults (``output.tracking_*_status_hz``) are the operator's and
-#: are not clamped.
-MAX_TRACKING_STATUS_HZ = 50.0
-MIN_TRACKING_STATUS_INTERVAL_S = 1.0 / MAX_TRACKING_STATUS_HZ
 #: how long (s) after a tracking command arrived its answer is given again to a retransmission of it.  A sender
 #: resends when no ACK came (the ACK may be the one lost): QGC sends a command at most 3 times, an ACK timeout
 #: apart (``Vehicle::_mavCommandMaxRetryCount``, ``_mavCommandAckTimeoutMSecs``, 1.2 to 3 s by version), so its
@@ -459,10 +457,6 @@ def _pad(text: str, n: int) -> list[int]:
     """A uint8_t[n] char array (pymavlink packs lists of ints for those fields)."""
     b = text.encode()[:n]
     return list(b) + [0] * (n - len(b))
-
-
-def _interval_s(hz: float) -> float | None:
-    return None if hz <= 0 else 1.0 / hz
 
 
 @dataclass
@@ -1016,12 +1010,6 @@ def _statustext_chunks(text: str, text_id: int) -> list[tuple[bytes, int, int]]:
     if len(raw) % n == 0:
         raw += b" "  # module docstring: a full last chunk has no NUL to end the text
     return [(raw[i : i + n], text_id, seq) for seq, i in enumerate(range(0, len(raw), n))]
-
-
-def _next_due(due_s: float, every_s: float, now_s: float) -> float:
-    """The next due time on the schedule; one that fell behind restarts from now instead of bursting."""
-    nxt = due_s + every_s
-    return nxt if nxt > now_s else now_s + every_s
 
 
 def _msg_id(p: float) -> int | None:
