@@ -280,6 +280,7 @@ class OnboardService:
                 counter=self.counter,
                 signing_key=cfg.mavlink.signing_key() if cfg.gcs.signed else None,
             )
+            self.camera.link_name = self.gcs.link_name  # the status names the links that set their own rates
         hint = zenoh_unreachable_hint(cfg)
         if hint is not None:
             log.warning("%s", hint)
@@ -746,7 +747,7 @@ class OnboardService:
         while self._selection_results:
             for msg in cam.complete(self._selection_results.popleft()):
                 sent += gcs.send(msg) > 0
-        for msg in cam.tick(now, track):
+        for msg in cam.tick(now, track, gcs.links()):  # #275 / #276 on each link's own schedule
             sent += gcs.send(msg) > 0
         return sent
 

@@ -141,8 +141,23 @@ _CAMERA = _section(
     {
         "component_id": _INT,
         "selection_mode": {"type": "string", "enum": ["none", "point", "rectangle"]},
-        "image_status_interval_s": _NUM_N,
-        "geo_status_interval_s": _NUM_N,
+        "default_image_status_interval_s": {
+            **_NUM_N,
+            "description": "#275's interval (s; null = off) on a link that set none (output.tracking_image_status_hz)",
+        },
+        "default_geo_status_interval_s": {
+            **_NUM_N,
+            "description": "#276's interval (s; null = off) on a link that set none (output.tracking_geo_status_hz)",
+        },
+        "link_intervals": {
+            "type": "array",
+            "description": "each link (a gcs endpoint, or a peer address on a udpin one) that set an interval of its "
+            "own with SET_MESSAGE_INTERVAL, which applies to that link only; forgotten when the link goes away",
+            "items": _section(
+                "one link's intervals (s; null = off)",
+                {"link": _STR, "image_status_interval_s": _NUM_N, "geo_status_interval_s": _NUM_N},
+            ),
+        },
         "pending_track_requests": _INT,
         "last_refusal": _STR_N,
         "counters": _COUNTS,

@@ -33,10 +33,11 @@ What a ground station sees (MAVLink common.xml; QGroundControl's src/Camera disc
   REQUEST_MESSAGE 270 / REQUEST_VIDEO_STREAM_ST. 2505 VIDEO_STREAM_STATUS
   REQUEST_MESSAGE 275 / 276                          one CAMERA_TRACKING_*_STATUS now
   SET_MESSAGE_INTERVAL (511) 275 / 276               ACCEPTED; param2 us, -1 stops, 0 = default; faster
-                                                     than 50 Hz is served at 50 Hz (every 20000 us)
+                                                     than 50 Hz is served at 50 Hz; on its own link (below)
   GET_MESSAGE_INTERVAL (510) param1 = message id     MESSAGE_INTERVAL (#244): interval_us of #275 / #276
-  / REQUEST_MESSAGE 244, param2 = message id         (-1 = off), of HEARTBEAT (0); 0 = "not available" for
-                                                     every other message (we stream none)
+  / REQUEST_MESSAGE 244, param2 = message id         on the requester's link (-1 = off), of HEARTBEAT (0);
+                                                     0 = "not available" for every other message (we
+                                                     stream none)
   MAV_CMD_CAMERA_TRACK_POINT (2004)                  a :class:`TrackRequest`; ACK when the pipeline
   MAV_CMD_CAMERA_TRACK_RECTANGLE (2005)              has decided (:meth:`CameraProtocol.complete`):
   MAV_CMD_CAMERA_STOP_TRACKING (2010)                ACCEPTED, or FAILED with the reason
@@ -98,8 +99,9 @@ What a ground station sees (MAVLink common.xml; QGroundControl's src/Camera disc
   opens ``udp://0.0.0.0:<uri>`` as RTP H.264 for RTPUDP, ``mpegts://0.0.0.0:<uri>`` for MPEG_TS),
   flags RUNNING (not THERMAL: :class:`VideoStream`), frame rate, bitrate, resolution, ``hfov`` (deg) = ``2 atan(width / 2 fx)``,
   encoding H264.
-* CAMERA_TRACKING_IMAGE_STATUS (#275) and CAMERA_TRACKING_GEO_STATUS (#276) while tracking, at the
-  intervals set by SET_MESSAGE_INTERVAL (defaults ``output.tracking_*_status_hz``); once when the
+* CAMERA_TRACKING_IMAGE_STATUS (#275) and CAMERA_TRACKING_GEO_STATUS (#276) while tracking, on each link at the
+  intervals it set by SET_MESSAGE_INTERVAL (defaults ``output.tracking_*_status_hz``; what a link is, and that one
+  gone forgets its setting: :class:`~onboard.io.status_schedule.StatusSchedules`); once to every link when the
   tracking ends, with status IDLE (QGC clears its box on it), then nothing until tracking resumes.
   #275's mode is the selection's (POINT for TRACK_POINT, RECTANGLE for TRACK_RECTANGLE and for an
   automatic acquisition); fields of the other mode are NaN.  POINT's ``radius`` is the tracked
@@ -115,7 +117,7 @@ from __future__ import annotations
 import logging
 import math
 from collections import OrderedDict
-from collections.abc import Hashable, Mapping
+from collections.abc import Callable, Hashable, Iterable, Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any, NamedTuple
 
@@ -133,8 +135,10 @@ from onboard.io.mavlink_wire import (
     wire_fields,
 )
 from onboard.io.status_schedule import (
+    FOLLOW_DEFAULT,
     MAX_TRACKING_STATUS_HZ,
     MIN_TRACKING_STATUS_INTERVAL_S,
+    StatusSchedules,
     _interval_s,
     _next_due,
 )
@@ -241,6 +245,10 @@ _COMMAND_COUNTERS = {
     MAV_CMD_CAMERA_STOP_TRACKING: "cmd_camera_stop_tracking",
     MAV_CMD_REQUEST_VIDEO_STREAM_INFORMATION: "cmd_request_video_stream_information",
     MAV_CMD_REQUEST_VIDEO_STREAM_STATUS: "cmd_request_video_stream_status",
+}
+_STATUS_INTERVAL_KEYS = {  # ``link_intervals`` key of each scheduled message (:meth:`CameraProtocol.status`)
+    MSG_TRACKING_IMAGE_STATUS: "image_status_interval_s",
+    MSG_TRACKING_GEO_STATUS: "geo_status_interval_s",
 }
 #: the shared reject counter's reason for each refusing MAV_RESULT; one reason per result, whatever the
 #: command, so that a sender cycling through ids cannot grow the status's ``rejected`` either
@@ -406,9 +414,9 @@ class Outgoing:
     """One message to send: pymavlink name (``"command_ack"``), its fields, and to whom.
 
     ``reply_to``: ``(system, component)`` of the requester, for an ACK, STATUSTEXT or requested message
-    (the adapter sends it where the request came from), or None for everybody (every ground-station
-    endpoint).  ``via``: the request's :attr:`CameraCommand.via`, the link to send a reply on (None: the
-    adapter finds it by ``reply_to``).
+    (the adapter sends it where the request came from).  ``via``: the link to send it on: a reply's request's
+    :attr:`CameraCommand.via` (None: found by ``reply_to``), or a periodic #275 / #276's link (:meth:`~CameraProtocol.tick`).
+    Neither: every ground-station endpoint.
     """
 
     msg: str
@@ -514,7 +522,9 @@ class CameraProtocol:
     #: the video stream draws the tracked target (``video.overlay``): #275 says so (TARGET_DATA_RENDERED)
     target_rendered: bool = False
     counter: RejectCounter | None = field(default=None, repr=False, compare=False)
-    interval_s: dict[int, float | None] = field(init=False)
+    #: the adapter's name of a link (:attr:`CameraCommand.via`) for the status (:meth:`GcsLink.link_name`)
+    link_name: Callable[[Hashable], str] = field(default=str, repr=False, compare=False)
+    schedules: StatusSchedules = field(init=False)
     counters: dict[str, int] = field(init=False, default_factory=dict)
     last_refusal: str | None = field(init=False, default=None)
     selection_mode: int = field(init=False, default=CAMERA_TRACKING_MODE_NONE)
@@ -530,12 +540,12 @@ class CameraProtocol:
             InputError,
             "CameraProtocol.{name} must be a rate >= 0 Hz, got {value!r}",
         )
-        self._default_interval_s = {
-            MSG_TRACKING_IMAGE_STATUS: _interval_s(self.image_status_hz),
-            MSG_TRACKING_GEO_STATUS: _interval_s(self.geo_status_hz),
-        }
-        self.interval_s = dict(self._default_interval_s)
-        self._next_due_s = {m: -math.inf for m in self.interval_s}
+        self.schedules = StatusSchedules(
+            {
+                MSG_TRACKING_IMAGE_STATUS: _interval_s(self.image_status_hz),
+                MSG_TRACKING_GEO_STATUS: _interval_s(self.geo_status_hz),
+            }
+        )
         self._next_hb_s = -math.inf
         self._pending: dict[int, _Pending] = {}
         #: requests superseded while the pipeline had them: no ACK, but their outcome still sets the mode
@@ -558,7 +568,7 @@ class CameraProtocol:
         if c in _TRACK_COMMANDS:
             return self._track_command(cmd, now_s)
         if c == MAV_CMD_SET_MESSAGE_INTERVAL:
-            result, reason = self._set_interval(p[0], p[1], now_s)
+            result, reason = self._set_interval(p[0], p[1], now_s, to.via)
             return [self._ack(c, result, to, reason=reason)], None
         if c == MAV_CMD_GET_MESSAGE_INTERVAL:
             return self._reply_interval(c, p[0], to), None
@@ -714,11 +724,12 @@ class CameraProtocol:
             ),
         )
 
-    def message_interval_us(self, msg_id: int) -> int:
-        """MESSAGE_INTERVAL.interval_us for ``msg_id``: #275 / #276 as set (-1 = off), the heartbeat's,
+    def message_interval_us(self, msg_id: int, link: Hashable | None = None) -> int:
+        """MESSAGE_INTERVAL.interval_us for ``msg_id`` on ``link`` (:attr:`CameraCommand.via`): #275 / #276 as that
+        link set them (-1 = off), the heartbeat's,
         0 (common.xml: "not available") for every other message."""
-        if msg_id in self.interval_s:
-            every = self.interval_s[msg_id]
+        if msg_id in self.schedules:
+            every = self.schedules.interval_s(link, msg_id)
             return -1 if every is None else int(round(every * 1e6))
         if msg_id == MSG_HEARTBEAT:
             return int(round(self.heartbeat_interval_s * 1e6))
@@ -732,22 +743,22 @@ class CameraProtocol:
             self._ack(command, MAV_RESULT_ACCEPTED, to),
             Outgoing(
                 "message_interval",
-                dict(message_id=msg_id, interval_us=self.message_interval_us(msg_id)),
+                dict(message_id=msg_id, interval_us=self.message_interval_us(msg_id, to.via)),
                 reply_to=to.ids,
                 via=to.via,
             ),
         ]
 
-    def _set_interval(self, p1: float, p2: float, now_s: float) -> tuple[int, str]:
-        """SET_MESSAGE_INTERVAL of #275 / #276: (MAV_RESULT, why when refused).  An interval shorter than
-        :data:`MIN_TRACKING_STATUS_INTERVAL_S` is applied as that one (module docstring)."""
+    def _set_interval(self, p1: float, p2: float, now_s: float, link: Hashable | None) -> tuple[int, str]:
+        """SET_MESSAGE_INTERVAL of #275 / #276 on ``link``, the one it came on: (MAV_RESULT, why when refused).  An
+        interval shorter than :data:`MIN_TRACKING_STATUS_INTERVAL_S` is applied as that one (module docstring)."""
         msg_id = _msg_id(p1)
-        if msg_id is None or msg_id not in self.interval_s:
+        if msg_id is None or msg_id not in self.schedules:
             return MAV_RESULT_DENIED, f"message {p1:g} is not one this camera streams"
-        accepted, interval_s = requested_interval(p2, self._default_interval_s[msg_id], lambda us: us / 1e6)
+        accepted, interval_s = requested_interval(p2, FOLLOW_DEFAULT, lambda us: us / 1e6)
         if not accepted:
             return MAV_RESULT_DENIED, f"interval {p2:g} us is not -1, 0 or a positive interval of at most 2^31-1 us"
-        if round(p2) > 0 and interval_s is not None and interval_s < MIN_TRACKING_STATUS_INTERVAL_S:
+        if isinstance(interval_s, float) and interval_s < MIN_TRACKING_STATUS_INTERVAL_S:
             if self.counter is not None:
                 self.counter.count(
                     "gcs_message_interval_clamped",
@@ -756,8 +767,7 @@ class CameraProtocol:
                     level=logging.INFO,
                 )
             interval_s = MIN_TRACKING_STATUS_INTERVAL_S
-        self.interval_s[msg_id] = interval_s
-        self._next_due_s[msg_id] = now_s
+        self.schedules.set(link, msg_id, interval_s, now_s)
         return MAV_RESULT_ACCEPTED, ""
 
     def _track_command(self, cmd: CameraCommand, now_s: float) -> tuple[list[Outgoing], TrackRequest | None]:
@@ -849,16 +859,19 @@ class CameraProtocol:
 
     def next_due_s(self) -> float:
         """When :meth:`tick` next has something to send: heartbeat, a tracking request's timeout, or, while
-        a target is tracked, a #275/#276 at its interval (a track that begins is seen at the caller's
-        next turn)."""
+        a target is tracked, a #275/#276 at its interval on a link (a track that begins, or a link that appears, is
+        seen at the caller's next turn)."""
         due = [self._next_hb_s, *(p.deadline_s for p in self._pending.values())]
         if self._was_tracking:
-            due += [self._next_due_s[m] for m, every in self.interval_s.items() if every is not None]
+            due.append(self.schedules.next_due_s())
         return min(due)
 
-    def tick(self, now_s: float, track: Track | None) -> list[Outgoing]:
-        """Heartbeat when due, expired tracking requests' ACKs, #275/#276 when due (``track``: the
-        newest one, None when there is none or it is stale)."""
+    def tick(self, now_s: float, track: Track | None, links: Iterable[Hashable | None] = (None,)) -> list[Outgoing]:
+        """Heartbeat when due, expired tracking requests' ACKs, #275/#276 when due on each of ``links`` (``track``: the
+        newest one, None when there is none or it is stale).  ``links``: those there are now (:meth:`GcsLink.links`),
+        each on its own schedule (:class:`~onboard.io.status_schedule.StatusSchedules`); the default, None, is all."""
+        links = list(links)
+        self.schedules.keep(links)
         out: list[Outgoing] = []
         if now_s >= self._next_hb_s:
             out.append(self._heartbeat())
@@ -904,17 +917,12 @@ class CameraProtocol:
             # selection, and #275 says so (RECTANGLE, as for any automatic acquisition) rather than the click's mode
             self.selection_mode = CAMERA_TRACKING_MODE_NONE
             self._selected_track_id = None
-        for msg_id, build in (
-            (MSG_TRACKING_IMAGE_STATUS, self._image_status),
-            (MSG_TRACKING_GEO_STATUS, self._geo_status),
-        ):
-            every = self.interval_s[msg_id]
-            if every is None or now_s < self._next_due_s[msg_id]:
-                continue
-            self._next_due_s[msg_id] = _next_due(self._next_due_s[msg_id], every, now_s)
-            msg = build(track)
+        build = {MSG_TRACKING_IMAGE_STATUS: self._image_status, MSG_TRACKING_GEO_STATUS: self._geo_status}
+        built: dict[int, Outgoing | None] = {}  # each message built once, whichever links it is due on
+        for link, msg_id in self.schedules.due(now_s, links):
+            msg = built[msg_id] = built[msg_id] if msg_id in built else build[msg_id](track)
             if msg is not None:
-                out.append(msg)
+                out.append(replace(msg, via=link))
         return out
 
     def _image_status(self, track: Track | None) -> Outgoing:
@@ -983,6 +991,9 @@ class CameraProtocol:
     def status(self) -> dict[str, Any]:
         """For the status JSON: rates, selection mode, pending requests, the last refusal, counters.
 
+        ``default_*_status_interval_s``: #275 / #276's interval (s; None = off) on a link that set none;
+        ``link_intervals``: each link that set its own (named by :attr:`link_name`), with both of its intervals.
+
         ``counters``: ``cmd_<name>`` per command we answer and ``cmd_unsupported`` for all others,
         ``ack_<MAV_RESULT>``, ``track_<kind>_accepted``, ``track_retransmission`` (answered IN_PROGRESS while
         pending, or the answer again once decided), ``track_superseded``:
@@ -990,8 +1001,9 @@ class CameraProtocol:
         return {
             "component_id": self.component_id,
             "selection_mode": {0: "none", 1: "point", 2: "rectangle"}[self.selection_mode],
-            "image_status_interval_s": self.interval_s[MSG_TRACKING_IMAGE_STATUS],
-            "geo_status_interval_s": self.interval_s[MSG_TRACKING_GEO_STATUS],
+            "default_image_status_interval_s": self.schedules.default_interval_s[MSG_TRACKING_IMAGE_STATUS],
+            "default_geo_status_interval_s": self.schedules.default_interval_s[MSG_TRACKING_GEO_STATUS],
+            "link_intervals": self.schedules.own_settings(self.link_name, _STATUS_INTERVAL_KEYS),
             "pending_track_requests": len(self._pending),
             "last_refusal": self.last_refusal,
             "counters": dict(self.counters),

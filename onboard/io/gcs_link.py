@@ -19,9 +19,14 @@ The camera's protocol lives in :mod:`onboard.io.camera_protocol` (pure); this mo
   255/190 on every copy): the protocol keys requesters by ``via`` too, and a reply carries it back.  It also
   remembers on which endpoint and address each (system, component) spoke last.
 * :meth:`GcsLink.send` sends an :class:`~onboard.io.camera_protocol.Outgoing` as the message of that
-  name (:func:`onboard.io.mavlink_wire.message_from_fields`): a reply to its ``via`` (the endpoint and address of
-  its request), or without one to where its ``reply_to`` spoke last; everything else to every endpoint.  Send
+  name (:func:`onboard.io.mavlink_wire.message_from_fields`): to its ``via`` (a reply's: the endpoint and address
+  of its request; a periodic #275 / #276's: the link whose schedule it is on), or without one a reply to where
+  its ``reply_to`` spoke last; everything else (the heartbeat, an IDLE status) to every endpoint.  Send
   errors are counted (``gcs_tx_error``), never raised.
+* :meth:`GcsLink.links` names the links there are now, each a ``via``: ``(index, None)`` for each connected
+  ``udpout`` / TCP / serial endpoint, ``(index, address)`` for each ``udpin`` peer.  The camera keeps the
+  tracking statuses' intervals per link (MAVLink: SET_MESSAGE_INTERVAL applies to the link it came on;
+  :class:`~onboard.io.status_schedule.StatusSchedules` says why a ``udpin`` peer is a link of its own).
 * ``signing_key`` (the autopilot link's, ``mavlink.signing_key_file``): everything sent is signed and only
   verified packets are taken, on every endpoint; refusals are counted ``gcs_unsigned``, ``gcs_v1_refused``,
   ``gcs_signature_bad|replay|stale`` (:func:`onboard.io.mavlink_transport.signature_refusal`).  A refused
@@ -39,10 +44,10 @@ The camera's protocol lives in :mod:`onboard.io.camera_protocol` (pure); this mo
   message, and a router forwards whatever it gets; garbage, a cut packet or an unknown id never makes
   a peer.
 * Replies (COMMAND_ACK, the requested message, STATUSTEXT) go to the address the command came from.
-  Periodic messages (HEARTBEAT, #275, #276) go to the peers heard within ``peer_timeout_s`` (default
-  :data:`PEER_TIMEOUT_S`); a silent peer is dropped.  At most ``max_peers`` (:data:`MAX_PEERS`) peers:
-  messages from further addresses are still answered but make no peer (``gcs_peer_refused``; a
-  warning once while the table is full).
+  Periodic messages (HEARTBEAT, and #275 / #276 each on its peer's schedule) go to the peers heard within
+  ``peer_timeout_s`` (default :data:`PEER_TIMEOUT_S`); a silent peer is dropped, and with it its intervals.
+  At most ``max_peers`` (:data:`MAX_PEERS`) peers: messages from further addresses are still answered but make
+  no peer (``gcs_peer_refused``; a warning once while the table is full).
 
 Why a separate component and separate endpoints, not the autopilot link's component 191: QGC handles
 camera messages only from components 100..105 or the autopilot, and the autopilot link should carry
@@ -380,6 +385,26 @@ class GcsLink:
                 out.append([])
         return out
 
+    def links(self) -> list[tuple[int, Address | None]]:
+        """The links there are now, each as the ``via`` :meth:`poll` gives a command from it (module docstring):
+        ``(index, None)`` per connected endpoint of one peer, ``(index, address)`` per ``udpin`` peer."""
+        out: list[tuple[int, Address | None]] = []
+        for idx, peers in enumerate(self.peers()):
+            conn = self._conns[idx]
+            if isinstance(conn, _UdpInEndpoint):
+                out += [(idx, addr) for addr in peers]
+            elif conn is not None and not getattr(conn, "irtrack_lost", False):
+                out.append((idx, None))
+        return out
+
+    def link_name(self, via) -> str:
+        """A link (a ``via``) in words, for the status: its endpoint, and on ``udpin`` the peer's address."""
+        checked = self._via(via)
+        if checked is None:
+            return str(via)
+        idx, addr = checked
+        return self.endpoints[idx] if addr is None else f"{self.endpoints[idx]} from {addr[0]}:{addr[1]}"
+
     def _receive(self, conn, now_s: float, max_messages: int) -> list[tuple[Any, Address | None, str]]:
         """The messages waiting on one endpoint, each with its source address (udpin) or None, and why a signed
         one was refused."""
@@ -450,12 +475,11 @@ class GcsLink:
         if self._dialling:
             self._settle(self._clock())
         targets: list[tuple[int, Address | None]] = [(idx, None) for idx in range(len(self._conns))]
-        if out.reply_to is not None:
-            via = self._via(out.via)
-            if via is not None:
-                targets = [via]
-            elif out.reply_to in self._route:
-                targets = [self._route[out.reply_to]]
+        via = self._via(out.via)
+        if via is not None:
+            targets = [via]
+        elif out.reply_to is not None and out.reply_to in self._route:
+            targets = [self._route[out.reply_to]]
         now_s = self._clock()
         n = 0
         for idx, addr in targets:

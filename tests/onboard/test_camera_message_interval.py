@@ -98,3 +98,96 @@ def test_an_interval_message_interval_cannot_report_is_denied_and_the_old_one_ke
     codec = mav.MAVLink(None, srcSystem=1, srcComponent=100)
     codec.message_interval_encode(**reply).pack(codec)  # packs
     assert reply["interval_us"] == 2147483392
+
+
+# two QGC copies on one udpin endpoint: the same ids, two peer addresses (GcsLink's via = (endpoint, address))
+LINK_A = (0, ("10.0.0.5", 14550))
+LINK_B = (0, ("10.0.0.6", 14550))
+TICK_S = 0.01  # a main loop turning at 100 Hz
+
+
+def _on(via, command: int, *params: float):
+    p = list(params) + [0.0] * (7 - len(params))
+    return cp.CameraCommand(command, tuple(p), 255, 190, via=via)
+
+
+def _statuses_per_link(proto, t0_s: float, seconds: float, links) -> dict:
+    """#275s each link got over ``seconds`` of ticks while a target is tracked."""
+    from tests.onboard.test_camera_protocol import _track
+
+    got = {via: 0 for via in links}
+    for k in range(int(round(seconds / TICK_S))):
+        for o in proto.tick(t0_s + k * TICK_S, _track(), links):
+            if o.msg == "camera_tracking_image_status":
+                assert o.via in got and o.reply_to is None  # periodic, on one link
+                got[o.via] += 1
+    return got
+
+
+def test_set_message_interval_applies_to_the_link_it_came_on_only():
+    """mavlink.io message_rates: the interval "only applies to the link (connection) the command was received on".
+    QGC sends SET_MESSAGE_INTERVAL(275, -1) with every stop: one copy's stop silenced #275 for every other copy."""
+    proto = _proto(image_status_hz=10.0, geo_status_hz=5.0)
+    links = [LINK_A, LINK_B]
+    assert _statuses_per_link(proto, 0.0, 1.0, links) == {LINK_A: 10, LINK_B: 10}
+    out, _ = proto.handle(_on(LINK_A, cp.MAV_CMD_SET_MESSAGE_INTERVAL, 275, -1), 1.0, 0)
+    assert _ack(out)["result"] == cp.MAV_RESULT_ACCEPTED and out[0].via == LINK_A
+    assert _statuses_per_link(proto, 1.0, 1.0, links) == {LINK_A: 0, LINK_B: 10}  # B keeps the default 10 Hz
+    proto.handle(_on(LINK_B, cp.MAV_CMD_SET_MESSAGE_INTERVAL, 275, 500_000), 2.0, 0)  # QGC's 2 Hz, on B
+    assert _statuses_per_link(proto, 2.0, 2.0, links) == {LINK_A: 0, LINK_B: 4}
+
+
+@pytest.mark.parametrize("ask", ["get", "request"])
+def test_get_message_interval_answers_the_requesters_own_link(ask):
+    proto = _proto(image_status_hz=10.0)
+    proto.handle(_on(LINK_A, cp.MAV_CMD_SET_MESSAGE_INTERVAL, 275, -1), 1.0, 0)
+    proto.handle(_on(LINK_B, cp.MAV_CMD_SET_MESSAGE_INTERVAL, 275, 500_000), 1.0, 0)
+
+    def asked(via):
+        cmd = (
+            _on(via, cp.MAV_CMD_GET_MESSAGE_INTERVAL, 275)
+            if ask == "get"
+            else _on(via, cp.MAV_CMD_REQUEST_MESSAGE, cp.MSG_MESSAGE_INTERVAL, 275)
+        )
+        out, _ = proto.handle(cmd, 1.0, 0)
+        (reply,) = [o for o in out if o.msg == "message_interval"]
+        assert reply.via == via
+        return reply.fields["interval_us"]
+
+    assert (asked(LINK_A), asked(LINK_B), asked((1, None))) == (-1, 500_000, 100_000)  # a third: the default
+    proto.handle(_on(LINK_A, cp.MAV_CMD_SET_MESSAGE_INTERVAL, 275, 0), 1.0, 0)  # 0: back to the default
+    assert (asked(LINK_A), asked(LINK_B)) == (100_000, 500_000)
+
+
+def test_a_link_that_goes_away_forgets_its_setting_and_comes_back_at_the_default():
+    proto = _proto(image_status_hz=10.0)
+    proto.handle(_on(LINK_A, cp.MAV_CMD_SET_MESSAGE_INTERVAL, 275, -1), 0.0, 0)
+    assert _statuses_per_link(proto, 0.0, 1.0, [LINK_A, LINK_B]) == {LINK_A: 0, LINK_B: 10}
+    assert [e["link"] for e in proto.status()["link_intervals"]] == [str(LINK_A)]
+    _statuses_per_link(proto, 1.0, 1.0, [LINK_B])  # A's peer timed out: the adapter no longer names it
+    assert proto.status()["link_intervals"] == [] and proto.message_interval_us(275, LINK_A) == 100_000
+    assert _statuses_per_link(proto, 2.0, 1.0, [LINK_A, LINK_B]) == {LINK_A: 10, LINK_B: 10}
+
+
+def test_the_status_says_the_default_intervals_and_each_links_own():
+    proto = _proto(image_status_hz=10.0, geo_status_hz=0.0)
+    proto.link_name = lambda via: f"peer {via[1][0]}"
+    proto.handle(_on(LINK_B, cp.MAV_CMD_SET_MESSAGE_INTERVAL, 276, 1_000_000), 0.0, 0)
+    st = proto.status()
+    assert (st["default_image_status_interval_s"], st["default_geo_status_interval_s"]) == (0.1, None)
+    assert st["link_intervals"] == [
+        {"link": "peer 10.0.0.6", "image_status_interval_s": 0.1, "geo_status_interval_s": 1.0}
+    ]
+
+
+def test_the_schedule_table_is_bounded_whatever_sets_an_interval():
+    """Settings from addresses that are no link (a flood, each setting an interval between two ticks) cannot grow
+    the table past MAX_LINKS, and the next tick keeps only the links there are."""
+    from onboard.io.status_schedule import MAX_LINKS
+
+    proto = _proto()
+    for k in range(3 * MAX_LINKS):
+        proto.handle(_on((0, ("10.1.0.1", 1000 + k)), cp.MAV_CMD_SET_MESSAGE_INTERVAL, 275, -1), 0.0, 0)
+    assert len(proto.status()["link_intervals"]) == MAX_LINKS
+    proto.tick(0.1, None, [LINK_A])
+    assert proto.status()["link_intervals"] == []

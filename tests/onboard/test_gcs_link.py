@@ -556,3 +556,34 @@ def test_a_dial_without_a_free_descriptor_is_counted_and_tried_again(monkeypatch
         assert counters.counts["gcs_open_failed"] == 2
     finally:
         link.close()
+
+
+def test_each_peer_gets_the_tracking_status_on_its_own_schedule():
+    """Two ground stations with the same ids on one udpin port: one's SET_MESSAGE_INTERVAL(275, -1) stops #275 for it
+    alone (MAVLink: it applies to the link it came on)."""
+    from tests.onboard.test_camera_protocol import _track
+
+    sink = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)  # a udpout ground station, listed first
+    sink.bind(("127.0.0.1", 0))
+    rig = Rig(before=(f"udpout:127.0.0.1:{sink.getsockname()[1]}",))
+    try:
+        a, b = rig.peer(), rig.peer()
+        a.heartbeat()
+        b.heartbeat()
+        assert rig.drive(lambda: len(rig.link.peers()[1]) == 2)
+        assert rig.link.links() == [(0, None), (1, a.addr), (1, b.addr)]
+        assert rig.link.link_name((1, a.addr)) == f"udpin:127.0.0.1:{rig.port} from {a.addr[0]}:{a.addr[1]}"
+        assert rig.link.link_name((0, None)) == rig.link.endpoints[0]
+        a.send(
+            mav.MAVLink_command_long_message(SYSID, 100, mav.MAV_CMD_SET_MESSAGE_INTERVAL, 0, 275, -1, 0, 0, 0, 0, 0)
+        )
+        assert rig.drive(lambda: a.types("COMMAND_ACK"))
+        for _ in range(10):  # 1 s of ticks at 10 Hz, the default
+            for out in rig.proto.tick(rig.clock(), _track(), rig.link.links()):
+                rig.link.send(out)
+            rig.clock.t_s += 0.1
+        assert rig.drive(lambda: len(b.types("CAMERA_TRACKING_IMAGE_STATUS")) == 10)
+        assert a.types("CAMERA_TRACKING_IMAGE_STATUS") == [] and len(a.types("HEARTBEAT")) >= 1
+    finally:
+        rig.close()
+        sink.close()

@@ -142,12 +142,18 @@ def test_status_json_conforms_with_the_sections_the_service_adds(fields):
 def test_the_status_sections_of_their_producers_conform():
     """The sections other components add (utc, camera, live view, ...) were bare objects in the schema a recording
     carries: a reader of the file learnt nothing of their keys (a helper's audit with the mcap reader found seven)."""
+    from onboard.io.camera_protocol import MAV_CMD_SET_MESSAGE_INTERVAL, CameraCommand
     from onboard.io.live_view import LiveView, LiveViewConfig
     from tests.onboard.test_camera_protocol import _proto  # a CameraProtocol, the camera section's producer
 
     status = idle_status(processing_ms=SUMMARY, latency_ms=SUMMARY, pose_wait_ms=SUMMARY)
     status["utc"] = UtcClock().status()
-    cam = _proto().status()
+    proto = _proto()  # a link with an interval of its own: link_intervals has an entry
+    proto.handle(CameraCommand(MAV_CMD_SET_MESSAGE_INTERVAL, (275, -1, 0, 0, 0, 0, 0), 255, 190, via=(0, None)), 0, 0)
+    cam = proto.status()
+    assert cam["link_intervals"] == [
+        {"link": "(0, None)", "image_status_interval_s": None, "geo_status_interval_s": 0.2}
+    ]
     status["camera"] = {
         **cam, "endpoints": ["udpout:127.0.0.1:14550"], "tracker_mode": "auto", "tracker_holding": False,
         "last_selection": {"kind": "point", "accepted": False, "reason": "no tracked object in 40 px of (1,2)"},

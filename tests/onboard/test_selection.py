@@ -253,6 +253,9 @@ class _FakeGcs:
         self.sent.append(out)
         return 1
 
+    def links(self) -> list:
+        return [None]  # one link, every endpoint: what CameraProtocol.tick assumes without links
+
     def close(self) -> None:
         pass
 

@@ -364,12 +364,17 @@ def test_daemon_end_to_end(tmp_path, daemon_env):
     from onboard.io.zenoh_session import ZenohConfig, frame_key, open_session, status_key, track_key
 
     scene = SyntheticScene()
-    mport, zport, gport = free_udp_port(), free_tcp_port(), free_udp_port()
+    mport, zport, gport, uport = free_udp_port(), free_tcp_port(), free_udp_port(), free_udp_port()
     alive = tmp_path / "alive"
     from pymavlink import mavutil
 
     gcs = mavutil.mavlink_connection(f"udpin:127.0.0.1:{gport}")  # a ground station listening, as QGC on 14550
     gcs_got: list = []
+    # two copies of QGC (the same ids) dialling the camera's udpin endpoint: two links, as MAVLink counts them
+    qgcs = [
+        mavutil.mavlink_connection(f"udpout:127.0.0.1:{uport}", source_system=255, source_component=190) for _ in "ab"
+    ]
+    qgc_got: list[list] = [[], []]  # (arrival time, message) per copy
     d = Daemon(
         [
             "--mavlink",
@@ -378,6 +383,8 @@ def test_daemon_end_to_end(tmp_path, daemon_env):
             f"tcp/127.0.0.1:{zport}",
             "--gcs",
             f"udpout:127.0.0.1:{gport}",
+            "--gcs",
+            f"udpin:127.0.0.1:{uport}",
             "--set",
             f"output.health_file={alive}",
             "--set",
@@ -426,8 +433,13 @@ def test_daemon_end_to_end(tmp_path, daemon_env):
             ap.pump()
             while (m := gcs.recv_match(blocking=False)) is not None:
                 gcs_got.append(m)
+            for q, got in zip(qgcs, qgc_got):
+                while (m := q.recv_match(blocking=False)) is not None:
+                    got.append((time.monotonic(), m))
             if now >= state["next_hb"]:
                 ap.heartbeat()
+                for q in qgcs:  # QGC's own heartbeat, 1 Hz: the udpin endpoint keeps each copy as a peer
+                    q.mav.heartbeat_send(mav.MAV_TYPE_GCS, mav.MAV_AUTOPILOT_INVALID, 0, 0, 4)
                 state["next_hb"] = now + 1.0
             if now >= state["next_tel"]:
                 t = ap.boot_us()
@@ -553,6 +565,33 @@ def test_daemon_end_to_end(tmp_path, daemon_env):
         u_last = got_tracks[-1].u_px / 640
         assert abs((img.rec_top_x + img.rec_bottom_x) / 2 - u_last) < 0.05  # the image moves slowly
         assert any(m.get_type() == "HEARTBEAT" and m.type == mav.MAV_TYPE_CAMERA for m in gcs_got)
+
+        # 3b. per-link rates (mavlink.io message_rates: an interval applies to the link it was set on): copy a stops
+        # #275 as QGC does on every stop; copy b, on the same port with the same ids, keeps the default 10 Hz
+        def qgc_of(i, mtype, since=0.0):
+            return [(t, m) for t, m in qgc_got[i] if m.get_type() == mtype and t >= since]
+
+        run_until(lambda: all(qgc_of(i, "CAMERA_TRACKING_IMAGE_STATUS") for i in (0, 1)), 10, "#275 on both copies")
+        t_set = time.monotonic()
+        qgcs[0].mav.command_long_send(1, 100, mav.MAV_CMD_SET_MESSAGE_INTERVAL, 0, 275, -1, 0, 0, 0, 0, 0)
+        run_until(lambda: qgc_of(0, "COMMAND_ACK", t_set), 5, "SET_MESSAGE_INTERVAL's ACK")
+        t_acked = qgc_of(0, "COMMAND_ACK", t_set)[0][0]
+        run_until(lambda: time.monotonic() >= t_acked + 1.0, 3, "a second of #275")
+        after = [len(qgc_of(i, "CAMERA_TRACKING_IMAGE_STATUS", t_acked)) for i in (0, 1)]
+        assert qgc_of(0, "COMMAND_ACK", t_set)[0][1].result == mav.MAV_RESULT_ACCEPTED
+        assert after[0] == 0 and after[1] >= 5, f"#275 in the second after a's -1: a {after[0]}, b {after[1]}"
+        for i, want_us in ((0, -1), (1, 100_000)):  # GET_MESSAGE_INTERVAL: each copy its own link's
+            t_get = time.monotonic()
+            qgcs[i].mav.command_long_send(1, 100, mav.MAV_CMD_GET_MESSAGE_INTERVAL, 0, 275, 0, 0, 0, 0, 0, 0)
+            run_until(lambda i=i, t=t_get: qgc_of(i, "MESSAGE_INTERVAL", t), 5, "MESSAGE_INTERVAL")
+            assert qgc_of(i, "MESSAGE_INTERVAL", t_get)[0][1].interval_us == want_us
+        run_until(lambda: got_status[-1]["camera"]["link_intervals"], 5, "the status's link_intervals")
+        (own,) = got_status[-1]["camera"]["link_intervals"]
+        assert (
+            own["link"].startswith(f"udpin:127.0.0.1:{uport} from 127.0.0.1:")
+            and own["image_status_interval_s"] is None
+        )
+        assert got_status[-1]["camera"]["default_image_status_interval_s"] == pytest.approx(0.1)
         assert not ap.got("CAMERA_TRACKING_IMAGE_STATUS")  # the autopilot link carries only what the autopilot needs
         # 4. a 3-D estimate (observable or not: unobservable_positions is on) and its #276
         run_until(lambda: any(t.has_position for t in got_tracks[-5:]), 20, "a track with a 3-D position")
@@ -581,6 +620,8 @@ def test_daemon_end_to_end(tmp_path, daemon_env):
             rc = d.proc.returncode  # it had exited (crashed) before the SIGTERM: rc says how
         d.stop()
         gcs.close()
+        for q in qgcs:
+            q.close()
         if session is not None:
             session.close()
     # the 2 s budget is enforced by the daemon itself (onboard.app.main.SHUTDOWN_BUDGET_S): over it,
@@ -929,6 +970,9 @@ class _FakeGcs:
     def send(self, msg) -> int:
         self.sent.append(msg)
         return 1
+
+    def links(self) -> list:
+        return [None]  # one link, every endpoint
 
 
 def test_commands_the_camera_refuses_are_in_the_status_rejected_counts():
