@@ -48,6 +48,9 @@ The camera's protocol lives in :mod:`onboard.io.camera_protocol` (pure); this mo
   ``peer_timeout_s`` (default :data:`PEER_TIMEOUT_S`); a silent peer is dropped, and with it its intervals.
   At most ``max_peers`` (:data:`MAX_PEERS`) peers: messages from further addresses are still answered but make
   no peer (``gcs_peer_refused``; a warning once while the table is full).
+* Each peer has its own packet sequence numbers: a ground station counts a gap in the sequence of a component
+  as lost packets (QGC's link-loss figure), and the messages each peer alone gets (its replies, its statuses)
+  would leave gaps in every other peer's.
 
 Why a separate component and separate endpoints, not the autopilot link's component 191: QGC handles
 camera messages only from components 100..105 or the autopilot, and the autopilot link should carry
@@ -126,6 +129,10 @@ class _UdpInEndpoint:
         self.peers: OrderedDict[Address, float] = OrderedDict()
         self._full_warned = False
         self._dest: Sequence[Address] = ()
+        #: peer -> the sequence number of its next packet (module docstring); kept for peers only (bounded), any
+        #: other address (answered, not a peer) shares ``_other_seq``
+        self._seq: dict[Address, int] = {}
+        self._other_seq = 0
 
     def receive(self, now_s: float, max_datagrams: int) -> list[tuple[Any, Address, str]]:
         """Every message parsed from up to ``max_datagrams`` waiting datagrams, with its source address and why a
@@ -189,28 +196,36 @@ class _UdpInEndpoint:
             if now_s - last_s <= self.peer_timeout_s:
                 break
             del self.peers[addr]
+            self._seq.pop(addr, None)
             log.info("%s: ground-station peer %s:%d silent for %.1f s, dropped", self.device, *addr, now_s - last_s)
         if len(self.peers) < self.max_peers:
             self._full_warned = False
 
     def send_to(self, msg, dest: Sequence[Address]) -> None:
-        """Pack ``msg`` once (one sequence number) and send it to each address in ``dest``."""
-        self._dest = dest
-        try:
-            self.mav.send(msg)
-        finally:
-            self._dest = ()
-
-    def write(self, buf) -> None:
-        """The sending parser's ``file``; every destination is tried, the first failure raised after."""
+        """Pack ``msg`` for each address in ``dest``, with that address's next sequence number (module docstring), and
+        send it there; every address is tried, the first failure raised after."""
         failed: OSError | None = None
-        for addr in self._dest:
+        for addr in dest:
+            peer = addr in self.peers
+            self.mav.seq = self._seq.get(addr, 0) if peer else self._other_seq
+            self._dest = (addr,)
             try:
-                self._udp.sock.sendto(bytes(buf), addr)
+                self.mav.send(msg)
             except OSError as exc:
                 failed = failed or exc
+            finally:
+                self._dest = ()
+                if peer:
+                    self._seq[addr] = self.mav.seq
+                else:
+                    self._other_seq = self.mav.seq
         if failed is not None:
             raise failed
+
+    def write(self, buf) -> None:
+        """The sending parser's ``file``: ``buf`` to the address :meth:`send_to` is sending to."""
+        for addr in self._dest:
+            self._udp.sock.sendto(bytes(buf), addr)
 
     def close(self) -> None:
         self._udp.close()

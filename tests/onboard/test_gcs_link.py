@@ -558,9 +558,10 @@ def test_a_dial_without_a_free_descriptor_is_counted_and_tried_again(monkeypatch
         link.close()
 
 
-def test_each_peer_gets_the_tracking_status_on_its_own_schedule():
+def test_each_peer_gets_the_tracking_status_on_its_own_schedule_and_its_own_sequence_numbers():
     """Two ground stations with the same ids on one udpin port: one's SET_MESSAGE_INTERVAL(275, -1) stops #275 for it
-    alone (MAVLink: it applies to the link it came on)."""
+    alone (MAVLink: it applies to the link it came on), and each sees an unbroken sequence of packet numbers from
+    the camera (a gap is a lost packet to QGC) although each gets messages the other does not."""
     from tests.onboard.test_camera_protocol import _track
 
     sink = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)  # a udpout ground station, listed first
@@ -584,6 +585,9 @@ def test_each_peer_gets_the_tracking_status_on_its_own_schedule():
             rig.clock.t_s += 0.1
         assert rig.drive(lambda: len(b.types("CAMERA_TRACKING_IMAGE_STATUS")) == 10)
         assert a.types("CAMERA_TRACKING_IMAGE_STATUS") == [] and len(a.types("HEARTBEAT")) >= 1
+        for p in (a, b):
+            seqs = [m.get_seq() for m in p.got if m.get_srcComponent() == 100]
+            assert seqs == list(range(len(seqs))), seqs
     finally:
         rig.close()
         sink.close()
