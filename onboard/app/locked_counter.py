@@ -1,4 +1,4 @@
-"""The daemon's event counter: a :class:`~onboard.core.pose.RejectCounter` that several threads count into
+"""The daemon's event counter: a :class:`~onboard.core.counters.RejectCounter` that several threads count into
 (the zenoh callback, the pipeline thread, the main loop, the estimator worker's reader)."""
 
 from __future__ import annotations

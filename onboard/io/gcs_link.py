@@ -6,7 +6,7 @@ The camera's protocol lives in :mod:`onboard.io.camera_protocol` (pure); this mo
   send to a ground station listening there, QGC's default is UDP 14550 --, ``udpin:HOST:PORT``,
   ``tcp:HOST:PORT`` (dialled without blocking: a ground station not up yet, or one that does not answer within
   :data:`TCP_CONNECT_TIMEOUT_S`, is counted ``gcs_open_failed`` and dialled again every :data:`TCP_REDIAL_S`),
-  ``tcpin:HOST:PORT``; parsed by :func:`onboard.io.mavlink_wire.parse_endpoint`),
+  ``tcpin:HOST:PORT``; parsed by :func:`onboard.io.mavlink_endpoint.parse_endpoint`),
   MAVLink 2, common dialect, with ``srcComponent = component_id`` and ``srcSystem`` the autopilot's
   system id once known (:meth:`GcsLink.set_system_id`; nothing is sent before).  ``udpout`` and TCP
   are pymavlink connections (:func:`onboard.io.mavlink_wire.connect`; a ``tcp:`` one over a socket connected
@@ -72,6 +72,7 @@ from pymavlink.dialects.v20 import common as mavlink2
 
 from onboard.core.errors import ConfigError, IrtrackError
 from onboard.io.camera_protocol import CameraCommand, Outgoing
+from onboard.io.mavlink_endpoint import parse_endpoint
 from onboard.io.mavlink_transport import (
     MAX_DATAGRAM_PARSE_BYTES,
     TCP_CONNECT_TIMEOUT_S,
@@ -82,7 +83,7 @@ from onboard.io.mavlink_transport import (
     new_signing,
     signature_refusal,
 )
-from onboard.io.mavlink_wire import connect, message_from_fields, parse_endpoint
+from onboard.io.mavlink_wire import connect, message_from_fields
 
 __all__ = ["GcsLink", "GcsLinkError", "PEER_TIMEOUT_S", "MAX_PEERS", "TCP_CONNECT_TIMEOUT_S"]
 

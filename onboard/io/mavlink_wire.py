@@ -76,7 +76,6 @@ from pymavlink.dialects.v20 import common as mavlink2
 from onboard.core.errors import InputError
 from onboard.core.pose import GimbalReference
 from onboard.io.mavlink_endpoint import MavlinkEndpoint
-from onboard.io.mavlink_endpoint import parse_endpoint as parse_endpoint  # gcs_link.py imports it from here
 
 __all__ = [
     "mavlink2",
