@@ -139,8 +139,8 @@ from onboard.io.status_schedule import (
     MAX_TRACKING_STATUS_HZ,
     MIN_TRACKING_STATUS_INTERVAL_S,
     StatusSchedules,
-    _interval_s,
-    _next_due,
+    advance_due_s,
+    interval_of_rate_s,
 )
 
 __all__ = [
@@ -542,8 +542,8 @@ class CameraProtocol:
         )
         self.schedules = StatusSchedules(
             {
-                MSG_TRACKING_IMAGE_STATUS: _interval_s(self.image_status_hz),
-                MSG_TRACKING_GEO_STATUS: _interval_s(self.geo_status_hz),
+                MSG_TRACKING_IMAGE_STATUS: interval_of_rate_s(self.image_status_hz),
+                MSG_TRACKING_GEO_STATUS: interval_of_rate_s(self.geo_status_hz),
             }
         )
         self._next_hb_s = -math.inf
@@ -875,7 +875,7 @@ class CameraProtocol:
         out: list[Outgoing] = []
         if now_s >= self._next_hb_s:
             out.append(self._heartbeat())
-            self._next_hb_s = _next_due(self._next_hb_s, self.heartbeat_interval_s, now_s)
+            self._next_hb_s = advance_due_s(self._next_hb_s, self.heartbeat_interval_s, now_s)
         for rid in [r for r, p in self._superseded.items() if now_s >= p.deadline_s]:
             # never decided: claimed, so that frames that resume later cannot carry out a click the operator
             # replaced (and whose replacement may be refused below); when the pipeline holds it this moment,

@@ -19,6 +19,8 @@ __all__ = [
     "MAX_LINKS",
     "FOLLOW_DEFAULT",
     "StatusSchedules",
+    "advance_due_s",
+    "interval_of_rate_s",
 ]
 
 #: the fastest a ground station may have #275 / #276 sent.  Each describes the newest track, which changes
@@ -31,11 +33,11 @@ MAX_TRACKING_STATUS_HZ = 50.0
 MIN_TRACKING_STATUS_INTERVAL_S = 1.0 / MAX_TRACKING_STATUS_HZ
 
 
-def _interval_s(hz: float) -> float | None:
+def interval_of_rate_s(hz: float) -> float | None:
     return None if hz <= 0 else 1.0 / hz
 
 
-def _next_due(due_s: float, every_s: float, now_s: float) -> float:
+def advance_due_s(due_s: float, every_s: float, now_s: float) -> float:
     """The next due time on the schedule; one that fell behind restarts from now instead of bursting."""
     nxt = due_s + every_s
     return nxt if nxt > now_s else now_s + every_s
@@ -127,7 +129,7 @@ class StatusSchedules:
                 due_s = sched.next_due_s.get(msg_id, -math.inf)
                 if every is None or now_s < due_s:
                     continue
-                sched.next_due_s[msg_id] = _next_due(due_s, every, now_s)
+                sched.next_due_s[msg_id] = advance_due_s(due_s, every, now_s)
                 out.append((link, msg_id))
         return out
 
