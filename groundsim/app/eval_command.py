@@ -17,7 +17,7 @@ from groundsim.evaluation.eval import (
     run_eval,
 )
 from groundsim.evaluation.mot import write_mot
-from groundsim.evaluation.out_dir import make_out_dir, refuse_foreign_out
+from groundsim.evaluation.out_dir import make_out_dir, refuse_foreign_out, writing
 from groundsim.evaluation.parallel import check_run_timeout, limit_blas_threads, pool_workers, quiet_run_logs
 from groundsim.evaluation.report import SCHEMA, holds_eval_report
 from groundsim.evaluation.scoring import format_gnss_dropout
@@ -199,9 +199,9 @@ def cmd_eval(args) -> int:
             )
         except EvalInterrupted as exc:
             with finish_despite_signals():
-                kept = _writing(out, keep_interrupted, exc, out)
+                kept = writing(out, keep_interrupted, exc, out)
                 if exc.result.runs:
-                    _writing(out, write_mot, out, exc.result.runs, cameras)
+                    writing(out, write_mot, out, exc.result.runs, cameras)
                     kept += f"; MOT files in {out / 'mot'}"
             return print_interrupted(kept)
         with finish_despite_signals() as received:
@@ -215,8 +215,8 @@ def _report(out: Path, result, options: EvalOptions, scenarios, cameras: dict, r
 
     from groundsim.evaluation.report import format_closed_loop, format_table2, write_eval_report
 
-    files = _writing(out, write_eval_report, out, result)
-    seqs = _writing(out, write_mot, out, result.runs, cameras)
+    files = writing(out, write_eval_report, out, result)
+    seqs = writing(out, write_mot, out, result.runs, cameras)
     log.info("MOT files of %d run(s) under %s", len(seqs), out / "mot")
     if not received:
         add_mot_scores(out, seqs)
@@ -233,7 +233,7 @@ def _report(out: Path, result, options: EvalOptions, scenarios, cameras: dict, r
             with open(files["report.md"], "a", encoding="utf-8") as f:
                 f.write("\n## Observer guidance in the loop\n\n" + table + "\n")
 
-        _writing(out, append)
+        writing(out, append)
         print()
         print(table)
     if options.injected.gnss_dropout is not None:
@@ -269,12 +269,3 @@ def check_out_paths(out: Path, labels: list[str]) -> None:
         p = out / label
         if p.exists() and not p.is_dir():
             raise ConfigError(f"--out {out}: {p} is not a directory (the report writes {label}/seed<N>/ there)")
-
-
-def _writing(out: Path, write, *args):
-    """``write(*args)``, an OSError (disk full, a path taken by a file, no permission) as one line naming --out."""
-    try:
-        return write(*args)
-    except OSError as exc:
-        where = f" {exc.filename}" if exc.filename else ""
-        raise ConfigError(f"--out {out}: cannot write{where}: {exc.strerror or exc}") from None

@@ -111,7 +111,7 @@ from pathlib import Path
 
 import numpy as np
 
-from groundsim.evaluation.out_dir import make_out_dir, refuse_foreign_out, write_replacing
+from groundsim.evaluation.out_dir import make_out_dir, refuse_foreign_out, write_replacing, writing
 from groundsim.evaluation.parallel import (
     JobsInterrupted,
     pool_workers,
@@ -428,8 +428,28 @@ def _pose_values(p_ned_m, q, origin) -> list:
 
 def export_sequence(scenario, seed: int, out_dir, options: DatasetOptions, progress=None) -> SequenceSummary:
     """Fly, render and write one sequence under ``out_dir / sequence_name(...)`` (see the module docstring).
-    ``progress(n)`` is called with frames done.  Raises IrtrackError for a run that cannot be made."""
+    ``progress(n)`` is called with frames done.  Raises IrtrackError for a run that cannot be made, and a
+    ConfigError naming ``--out`` for one whose files cannot be written (a full disk, a file size limit)."""
+    return writing(out_dir, _export_sequence, scenario, seed, out_dir, options, progress)
+
+
+def _write_png(path: Path, pixels: np.ndarray) -> None:
+    """``pixels`` as a PNG at ``path``.  Encoded in memory and written by Python, not by ``cv2.imwrite``: that one
+    answers a full disk with False alone, after libpng printed its own ``libpng error: Write Error`` on fd 2, so
+    the reason was lost and a stray line came before the command's own."""
     import cv2
+
+    ok, png = cv2.imencode(".png", pixels, [cv2.IMWRITE_PNG_COMPRESSION, PNG_COMPRESSION])
+    if not ok:
+        raise InputError(f"{path}: the frame ({pixels.dtype}, {pixels.shape}) could not be encoded as PNG")
+    try:
+        with open(path, "wb") as f:
+            f.write(png.tobytes())
+    except OSError as exc:  # a write's or the close's error names no file: this one names it
+        raise OSError(exc.errno, exc.strerror, str(path)) from None
+
+
+def _export_sequence(scenario, seed: int, out_dir, options: DatasetOptions, progress=None) -> SequenceSummary:
 
     from groundsim.world.sim import SimCore
     from groundsim.world.truth import TruthWriter
@@ -480,10 +500,7 @@ def export_sequence(scenario, seed: int, out_dir, options: DatasetOptions, progr
                 pixels = np.zeros((int(K.height_px), int(K.width_px)), dtype)
             if pixels is None:
                 raise InputError(f"{name}: frame {k} could not be rendered")
-            if not cv2.imwrite(
-                str(img_dir / f"{frame:06d}.png"), pixels, [cv2.IMWRITE_PNG_COMPRESSION, PNG_COMPRESSION]
-            ):
-                raise ConfigError(f"--out {out_dir}: cannot write {img_dir / f'{frame:06d}.png'}")
+            _write_png(img_dir / f"{frame:06d}.png", pixels)
             truth.write(tr, fr.labels)
             others = tuple(o for o in fr.labels if o.object_id != 0 and _object_box(o, K) is not None)
             if others:
@@ -832,14 +849,12 @@ def export_dataset(
     with finish_despite_signals("the dataset's index") as received:
         if "coco" in options.formats:
             desc = f"irtrack dataset: {', '.join(sc.name for sc in scenarios)}; seeds {seeds}"
-            _write_ascii(out / "coco.json", json.dumps(coco_document(summaries, desc), indent=1) + "\n")
+            _write_ascii(out, "coco.json", json.dumps(coco_document(summaries, desc), indent=1) + "\n")
         if "mot" in options.formats:
             (out / SEQMAP).parent.mkdir(exist_ok=True)
-            _write_ascii(out / SEQMAP, "name\n" + "".join(s.name + "\n" for s in summaries))
+            _write_ascii(out, SEQMAP, "name\n" + "".join(s.name + "\n" for s in summaries))
         # last: a dataset with a manifest is a whole one
-        _write_ascii(
-            out / "manifest.json", json.dumps(_manifest(scenarios, seeds, options, summaries), indent=2) + "\n"
-        )
+        _write_ascii(out, "manifest.json", json.dumps(_manifest(scenarios, seeds, options, summaries), indent=2) + "\n")
     if signal.SIGINT in received:
         raise DatasetInterrupted(summaries, len(jobs))
     return summaries, time.perf_counter() - t0
@@ -861,9 +876,11 @@ def _remove_index(out: Path, options: DatasetOptions) -> None:
         (out / SEQMAP).parent.rmdir()
 
 
-def _write_ascii(path: Path, text: str) -> None:
-    """``text`` into ``path``, replaced whole (:func:`~groundsim.evaluation.out_dir.write_replacing`)."""
-    write_replacing(path, lambda tmp: tmp.write_text(text, encoding="ascii"))
+def _write_ascii(out: Path, name: str, text: str) -> None:
+    """``text`` into the dataset ``out``'s file ``name``, replaced whole
+    (:func:`~groundsim.evaluation.out_dir.write_replacing`); a ConfigError naming ``--out`` when it cannot be."""
+    path = out / name
+    writing(out, write_replacing, path, lambda tmp: tmp.write_text(text, encoding="ascii"))
 
 
 def cmd_dataset(args) -> int:

@@ -4,7 +4,8 @@ Every ``groundsim`` command that writes a folder (eval, demo, dataset, campaign,
 :func:`make_out_dir`, so a file in its place, a parent that cannot be made or a folder that refuses files is one
 line naming the option, before any run starts.  A command that replaces an earlier run's files in its folder
 (eval, dataset, campaign, report) first passes it to :func:`refuse_foreign_out`: it removes and overwrites files
-by name, which is safe only in a folder of its own.
+by name, which is safe only in a folder of its own.  What fails later, while the files are written (a full disk,
+a file size limit), is one line naming the option too: :func:`writing`.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from typing import Any
 
 from onboard.core.errors import ConfigError
 
-__all__ = ["holds_files", "make_out_dir", "refuse_foreign_out", "write_replacing"]
+__all__ = ["holds_files", "make_out_dir", "refuse_foreign_out", "write_replacing", "writing"]
 
 
 def make_out_dir(path, option: str = "--out") -> Path:
@@ -38,6 +39,17 @@ def make_out_dir(path, option: str = "--out") -> Path:
     except OSError as exc:
         raise ConfigError(f"{option} {out}: cannot write in the directory: {exc.strerror or exc}") from None
     return out
+
+
+def writing(out, write: Callable[..., Any], *args: Any, option: str = "--out") -> Any:
+    """``write(*args)``, an OSError (disk full, a file too large for the limit, a path taken by a file, no
+    permission) as one ConfigError naming ``option``'s folder ``out``, the file when the error names one, and the
+    system's reason: the line a command prints, not a traceback from whichever file failed first."""
+    try:
+        return write(*args)
+    except OSError as exc:
+        where = f" {exc.filename}" if exc.filename else ""
+        raise ConfigError(f"{option} {out}: cannot write{where}: {exc.strerror or exc}") from None
 
 
 def holds_files(path) -> bool:

@@ -525,21 +525,21 @@ def test_an_interrupted_run_into_a_dataset_leaves_no_index_of_frames_it_removed(
     """A dataset made again and interrupted mid-sequence: the earlier manifest, coco.json and seqmap listed frames
     the sequence no longer held (its PNGs removed, gt.txt gone); they go before the first sequence is touched, the
     interrupted line names the sequence left unfinished, and the same command takes the folder again."""
-    import cv2
+    from groundsim.evaluation import dataset as dataset_module
 
     args = ["dataset", "--seeds", "2", "--duration", "0.5", "--format", "mot", "coco", "--workers", "1"]
     args += ["--no-progress", "--out", str(tmp_path)]
     assert cli_main(args) == 0
     assert (tmp_path / "manifest.json").is_file() and (tmp_path / "coco.json").is_file()
-    imwrite, written = cv2.imwrite, []
+    write_png, written = dataset_module._write_png, []
 
-    def interrupted_after_five_frames(*a, **k):
+    def interrupted_after_five_frames(path, pixels):
         if len(written) == 5:
             raise KeyboardInterrupt
-        written.append(a[0])
-        return imwrite(*a, **k)
+        written.append(path)
+        write_png(path, pixels)
 
-    monkeypatch.setattr(cv2, "imwrite", interrupted_after_five_frames)
+    monkeypatch.setattr(dataset_module, "_write_png", interrupted_after_five_frames)
     capsys.readouterr()
     assert cli_main(args) == 130
     err = capsys.readouterr().err.strip().splitlines()
@@ -602,3 +602,33 @@ def test_a_mistyped_seed_count_is_one_line_not_a_job_list_of_that_size(tmp_path,
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "--seeds: at most 10000 sequences in one dataset" in err, err
     assert not out.exists()
+
+
+DEV_FULL = Path("/dev/full")  # every write to it fails as on a full disk (ENOSPC)
+needs_dev_full = pytest.mark.skipif(not DEV_FULL.exists(), reason="needs /dev/full")
+
+
+@needs_dev_full
+def test_a_full_disk_under_a_sequence_is_one_line_naming_out_not_a_traceback(tmp_path, capsys):
+    """A sequence's labels.csv on a full disk: its rows are flushed when it is closed, in the middle of the
+    run's clean-up, which raised the OSError as a traceback (exit 1)."""
+    seq = tmp_path / "P1-RTK-s0"
+    (seq / "img1").mkdir(parents=True)  # what an interrupted run leaves, which a run takes again
+    (seq / "labels.csv").symlink_to(DEV_FULL)
+    code = cli_main(["dataset", "--duration", "0.1", "--workers", "1", "--no-progress", "--out", str(tmp_path)])
+    err = [line for line in capsys.readouterr().err.splitlines() if "level=" not in line]
+    assert code == 2
+    assert err == [f"groundsim dataset: error: --out {tmp_path}: cannot write: No space left on device"]
+    assert not (tmp_path / "manifest.json").exists()  # no index of a dataset that is not whole
+
+
+@needs_dev_full
+def test_a_frame_on_a_full_disk_names_the_file_and_the_reason_and_libpng_says_nothing(capfd):
+    """cv2.imwrite answered a full disk with False alone, after libpng printed ``libpng error: Write Error`` on
+    fd 2 itself: the command's line had no reason and a stray line before it."""
+    from groundsim.evaluation.dataset import _write_png
+
+    with pytest.raises(OSError) as err:
+        _write_png(DEV_FULL, np.full((64, 80), 7, np.uint8))
+    assert (err.value.strerror, err.value.filename) == ("No space left on device", str(DEV_FULL))
+    assert capfd.readouterr().err == ""
