@@ -213,7 +213,7 @@ def truth_coverage(tracks: list, truth: list, cut_short: str | None = None) -> T
 def cmd_report(args) -> int:
     """Replay the recording, draw the report; print the files written.  Ctrl-C: one line, exit 130."""
     from groundsim.evaluation.flight_report import REPORT_SCHEMA, holds_flight_report, write_flight_report
-    from groundsim.evaluation.out_dir import make_out_dir, refuse_foreign_out
+    from groundsim.evaluation.out_dir import make_out_dir, refuse_foreign_out, writing
     from onboard.app.replay import (
         ReplayProgress,
         config_of,
@@ -274,7 +274,9 @@ def cmd_report(args) -> int:
         if coverage is not None and coverage.partial:
             print(coverage.note(args.truth))
             extra["truth_covers"] = asdict(coverage)
-        paths = write_flight_report(out, res.tracks, poses, frames, truth or None, os.path.basename(rec.path), extra)
+        name = os.path.basename(rec.path)
+        # a full disk while a plot is saved: one line naming --out, as the folder's own checks are
+        paths = writing(out, write_flight_report, out, res.tracks, poses, frames, truth or None, name, extra)
     except KeyboardInterrupt:
         written = (set(out.glob("*")) - before) if out.is_dir() else set()
         return print_interrupted(f"partial report in {out} ({len(written)} files)" if written else "nothing written")

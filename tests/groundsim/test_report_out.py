@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 import json
+import os
 from types import SimpleNamespace
 
 import pytest
@@ -73,3 +74,28 @@ def test_a_truth_file_that_is_no_recording_is_named_as_truth_the_simulators(tmp_
     line = _one_error_line(capsys)
     assert line.startswith(f"groundsim report: error: --truth {truth}: not an MCAP recording"), line
     assert "groundsim run --record" in line and "onboard --record" not in line
+
+
+@pytest.mark.skipif(
+    not os.path.exists("/dev/full"), reason="needs /dev/full, a file whose writes fail as a full disk's"
+)
+def test_a_full_disk_while_the_plots_are_saved_is_one_line_naming_out(tmp_path, capsys, monkeypatch):
+    import groundsim.evaluation.flight_report as flight_report
+    from groundsim.app import report
+
+    flight = tmp_path / "flight.mcap"
+    rec = SimpleNamespace(inputs=[{}], truncated=None, truth=[], metadata={}, statuses=[], path=str(flight))
+    result = SimpleNamespace(tracks=[], frames_fed=1, wall_s=0.1, frames_missing=0, frames_refused=0)
+    monkeypatch.setattr(replay_module, "load_recording", lambda path: rec)
+    monkeypatch.setattr(replay_module, "config_of", lambda rec, path: None)
+    monkeypatch.setattr(replay_module, "replay", lambda rec, config, on_input=None: result)
+    monkeypatch.setattr(report, "flight_inputs", lambda rec: ({}, {}))
+
+    def save_on_a_full_disk(out, *args):  # as matplotlib's savefig meets it: the PNG's bytes refused
+        with open("/dev/full", "wb") as f:
+            f.write(b"\x89PNG" * 4096)
+
+    monkeypatch.setattr(flight_report, "write_flight_report", save_on_a_full_disk)
+    out = tmp_path / "r"
+    assert cli.main(["report", str(flight), "--out", str(out)]) == cli.EXIT_ERROR
+    assert _one_error_line(capsys) == f"groundsim report: error: --out {out}: cannot write: No space left on device"
