@@ -482,7 +482,7 @@ def _export_sequence(scenario, seed: int, out_dir, options: DatasetOptions, prog
     with (
         open(seq_dir / "labels.csv", "w", encoding="ascii", newline="") as f_lab,
         open(seq_dir / "cameras.csv", "w", encoding="ascii", newline="") as f_cam,
-        TruthWriter(seq_dir / "truth.csv") as truth,
+        TruthWriter(seq_dir / "truth.csv", option="") as truth,  # a path of its own, no --truth given
     ):
         w_lab, w_cam = csv.writer(f_lab, lineterminator="\n"), csv.writer(f_cam, lineterminator="\n")
         w_lab.writerow(LABEL_COLUMNS)

@@ -342,10 +342,12 @@ class TruthWriter:
     """Writes :class:`TruthRow` lines to ``path`` (parent directories created; an existing file
     is replaced).  The header is written and flushed at open; every :meth:`write` appends one
     whole line and flushes it.  A path that cannot be written raises :class:`ConfigError`
-    naming ``--truth`` and the path."""
+    naming ``option`` (the command's option that gave the path; none for a file a command places itself, as
+    ``groundsim dataset`` its sequences' truth.csv) and the path."""
 
-    def __init__(self, path) -> None:
+    def __init__(self, path, option: str = "--truth") -> None:
         self.path = Path(path)
+        self._named = f"{option} {self.path}" if option else str(self.path)
         self.rows_written = 0
         self._objects = None  # the per-object file, opened with the first labelled frame
         try:
@@ -355,7 +357,7 @@ class TruthWriter:
             self._f.write(",".join(TRUTH_COLUMNS) + "\n")
             self._f.flush()
         except OSError as exc:
-            raise ConfigError(f"--truth {self.path}: cannot write: {exc.strerror or exc}") from None
+            raise ConfigError(f"{self._named}: cannot write: {exc.strerror or exc}") from None
         log.info("truth: writing %s", self.path)
 
     def write(self, row: TruthRow, labels=()) -> None:
@@ -374,7 +376,7 @@ class TruthWriter:
                 self._objects.write("".join(",".join(r) + "\n" for r in object_rows(row, labels)))
                 self._objects.flush()
         except OSError as exc:
-            raise TruthWriteError(f"--truth {self.path}: write failed: {exc.strerror or exc}") from None
+            raise TruthWriteError(f"{self._named}: write failed: {exc.strerror or exc}") from None
         self.rows_written += 1
 
     def close(self) -> None:

@@ -632,3 +632,14 @@ def test_a_frame_on_a_full_disk_names_the_file_and_the_reason_and_libpng_says_no
         _write_png(DEV_FULL, np.full((64, 80), 7, np.uint8))
     assert (err.value.strerror, err.value.filename) == ("No space left on device", str(DEV_FULL))
     assert capfd.readouterr().err == ""
+
+
+@needs_dev_full
+def test_a_truth_csv_that_cannot_be_written_is_named_without_an_option_dataset_does_not_have(tmp_path, capsys):
+    seq = tmp_path / "P1-RTK-s0"
+    (seq / "img1").mkdir(parents=True)
+    (seq / "truth.csv").symlink_to(DEV_FULL)
+    code = cli_main(["dataset", "--duration", "0.1", "--workers", "1", "--no-progress", "--out", str(tmp_path)])
+    err = [line for line in capsys.readouterr().err.splitlines() if "level=" not in line]
+    assert code == 2
+    assert err == [f"groundsim dataset: error: {seq / 'truth.csv'}: cannot write: No space left on device"]
