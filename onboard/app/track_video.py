@@ -54,8 +54,9 @@ the daemon drops (over more missing frames than a track coasts, 45, every track 
 
 Frames must be at least 16 x 16 pixels (the chain's smallest) and of one size: a folder or a video whose frame
 size changes is refused at the first frame that differs.  A video that decodes with errors (damage the decoder
-concealed) or to fewer frames than its container declares (a file cut short) is tracked as far as it decodes,
-with one warning saying how far.
+concealed, or a frame it cannot decode: the frames after that one are not read, so that no later frame number
+shifts) or to fewer frames than its container declares (a file cut short) is tracked as far as it decodes, with
+one warning saying how far; one whose first frame cannot be decoded is refused.
 
 ``--encoding``: ``auto`` takes the frames as stored (the first frame's depth; all must match);
 ``mono8`` takes a 16-bit frame's high byte (of a 14-bit camera's grey, the 6 highest bits: a dim target's contrast

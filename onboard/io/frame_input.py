@@ -370,6 +370,7 @@ def _video_frames(path: Path, encoding: str) -> tuple[float, int | None, Iterato
 
     def frames() -> Iterator[tuple[int, str, np.ndarray]]:
         k = corrupt = 0
+        stopped = None  # why decoding stopped before the end: a packet the decoder refused
         first: tuple[int, ...] | None = None
         # FFmpeg conceals damage and goes on, saying so only in its log, which PyAV drops unless a level is set:
         # the log is turned on for the decoding, its lines captured (not printed) and its errors counted
@@ -391,14 +392,20 @@ def _video_frames(path: Path, encoding: str) -> tuple[float, int | None, Iterato
                         )
                     yield k, f"{path} frame {k}", px
         except av.error.FFmpegError as exc:
-            raise InputError(f"{path}: frame {k + 1} cannot be decoded: {_av_reason(exc)}") from None
+            if k == 0:
+                raise InputError(f"{path}: frame {k + 1} cannot be decoded: {_av_reason(exc)}") from None
+            # damage the decoder cannot conceal: the frames before it are kept, as a file cut short there would be
+            # (the frames after it are not read: a frame skipped would shift every later MOT frame number)
+            stopped = f"frame {k + 1} cannot be decoded ({_av_reason(exc)}), the frames after it are not read"
         finally:
             av.logging.set_level(level)
             container.close()
         errors = av.logging.get_last_error()[0] - errors_before
         short = _short_by(k, total, duration_s, fps)
-        if short or errors or corrupt:
+        if short or errors or corrupt or stopped:
             said = [short] if short else [f"decoded {k} frames"]
+            if stopped:
+                said.append(stopped)
             if errors:
                 first_error = next(
                     (f"[{name}] {text.strip()}" for lvl, name, text in logs if lvl <= av.logging.ERROR), ""

@@ -329,6 +329,42 @@ def test_a_damaged_video_that_decodes_to_the_end_is_warned_about_once(tmp_path, 
     assert warned.startswith(f"{mp4}: decoded 12 frames; ") and "decoder error" in warned, warned
 
 
+def test_a_frame_the_decoder_cannot_decode_ends_the_video_there_its_frames_before_kept(tmp_path, caplog, capsys):
+    """A packet overwritten whole (its NAL length prefix too): FFmpeg cannot conceal it and PyAV raises.  That ended
+    the run in an error with nothing written, the frames before it tracked for nothing, where a file cut short at
+    the same place is tracked as far as it decodes; the frames after it are not read, so none takes an earlier
+    one's number."""
+    av = pytest.importorskip("av")
+    mp4 = _write_video(tmp_path / "v.mp4", [_noise(k, 64, 64) for k in range(12)], {"movflags": "faststart"})
+    with av.open(str(mp4)) as c:
+        packets = [p for p in c.demux(video=0) if p.size]
+    victim = packets[len(packets) // 2]
+    data = bytearray(mp4.read_bytes())
+    data[victim.pos : victim.pos + victim.size] = bytes(victim.size)
+    mp4.write_bytes(bytes(data))
+    out = tmp_path / "t.txt"
+    assert main([str(mp4), "--out", str(out), "--quiet"]) == EXIT_OK
+    assert out.is_file()
+    assert capsys.readouterr().out.startswith(f"{mp4}: 6 frames of 64 x 64 mono8")
+    (warned,) = _records(caplog, logging.WARNING)
+    assert warned.startswith(f"{mp4}: decoded 6 of 12 frames declared; frame 7 cannot be decoded ("), warned
+    assert "the frames after it are not read" in warned
+
+
+def test_a_video_whose_first_frame_cannot_be_decoded_is_refused(tmp_path, capsys):
+    av = pytest.importorskip("av")
+    mp4 = _write_video(tmp_path / "v.mp4", [_noise(k, 64, 64) for k in range(4)], {"movflags": "faststart"})
+    with av.open(str(mp4)) as c:
+        first = next(p for p in c.demux(video=0) if p.size)
+    data = bytearray(mp4.read_bytes())
+    data[first.pos : first.pos + first.size] = bytes(first.size)
+    mp4.write_bytes(bytes(data))
+    out = tmp_path / "t.txt"
+    assert main([str(mp4), "--out", str(out), "--quiet"]) == EXIT_INPUT
+    assert capsys.readouterr().err.startswith(f"{mp4}: frame 1 cannot be decoded: ")
+    assert not out.exists()
+
+
 def test_names_that_are_times_are_numbered_by_position_and_said(tmp_path, monkeypatch, caplog):
     """Frames named by a clock (ms since an epoch: a step of ~33 a frame) are not frame numbers: taken as such, every
     frame was a 30-frame gap to the tracker and an Anti-UAV result was padded to 1.7e12 entries."""
