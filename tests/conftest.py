@@ -73,10 +73,14 @@ def _no_stray_log_handlers():
     """A handler a test leaves on the root logger (an entry point's ``logging.basicConfig``) holds the ``sys.stderr``
     of that test, which pytest's capture closes: every record logged in a later test then printed a 'Logging error'
     traceback into that test's stderr (a one-line-error test failed so in a whole run).  pytest's own handlers come
-    and go by themselves."""
+    and go by themselves.  The root's level is put back too: an entry point run in-process with ``--log-level error``
+    left it at ERROR, and a later test's caplog then saw no warning (the dataset's 'coco.json removed' check failed
+    after tests/groundsim/test_run.py)."""
     root = logging.getLogger()
     before = set(map(id, root.handlers))
+    level = root.level
     yield
+    root.setLevel(level)
     for handler in list(root.handlers):
         if id(handler) not in before and not type(handler).__module__.startswith("_pytest"):
             root.removeHandler(handler)
