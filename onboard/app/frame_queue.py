@@ -9,7 +9,25 @@ from typing import Any
 from onboard.core.checks import is_positive_int
 from onboard.core.errors import InputError
 
-__all__ = ["FrameQueue"]
+__all__ = ["FrameQueue", "BUNCHED_FRACTION", "arrived_bunched"]
+
+#: frames that reached the queue in less than this fraction of the time between their capture stamps arrived bunched
+BUNCHED_FRACTION = 0.5
+
+
+def arrived_bunched(
+    oldest_received_ns: int, oldest_time_boot_us: int, newest_received_ns: int, newest_time_boot_us: int
+) -> bool:
+    """Whether the queued frames, from the oldest to the newest, arrived much faster than they were captured.
+
+    A pipeline that falls behind overflows the queue with frames arriving at the camera's pace (arrival span about
+    the capture span); a link or sender that holds frames and releases them together (network jitter) overflows it
+    with frames arriving within milliseconds of each other though captured a camera period apart.  The two call for
+    different remedies (CPU, or the link and ``input.queue_length``), so the drops are told apart."""
+    capture_span_ns = (newest_time_boot_us - oldest_time_boot_us) * 1000
+    if capture_span_ns <= 0:
+        return False
+    return newest_received_ns - oldest_received_ns < BUNCHED_FRACTION * capture_span_ns
 
 
 class FrameQueue:
@@ -42,6 +60,11 @@ class FrameQueue:
             if self._d:
                 return self._d.popleft()
             return None
+
+    def oldest(self) -> Any:
+        """The oldest item, left in the queue; None when it is empty."""
+        with self._cond:
+            return self._d[0] if self._d else None
 
     def close(self) -> None:
         with self._cond:

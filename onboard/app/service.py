@@ -7,7 +7,9 @@ Threads (nothing else runs concurrently):
   100x too large is never copied), copies it out once and checks its header and size
   (:func:`onboard.core.irframe.decode_irframe`: microseconds, the pixels stay a view), counting each
   refusal as ``frame_<reason>``, and pushes ``(IrFrame, received_mono_ns)`` into a bounded
-  :class:`FrameQueue`; when full the *oldest* frame is dropped and counted (``dropped_queue``).
+  :class:`FrameQueue`; when full the *oldest* frame is dropped and counted (``dropped_queue``; also
+  ``frames_dropped_bunched`` when the queued frames arrived much faster than they were captured, a link's burst,
+  which the ``overload`` warning names instead of the CPU).
   It never blocks.  The output taps (:mod:`onboard.app.observers`) see each frame as received.
 * **pipeline thread**: pops frames, runs :meth:`FramePipeline.process` (admission,
   imaging -- the objects chain first waits up to ``imaging.pose_wait_ms`` (40 ms) for the attitude sample after
@@ -62,7 +64,7 @@ from onboard.app.components import make_camera_protocol, zenoh_unreachable_hint,
 from onboard.app.config import OnboardConfig
 from onboard.app.cpu_load import CpuLoad
 from onboard.app.estimator_worker import ProcessEstimator, ThreadedEstimator, make_estimator_worker
-from onboard.app.frame_queue import FrameQueue
+from onboard.app.frame_queue import FrameQueue, arrived_bunched
 from onboard.app.locked_counter import LockedCounter
 from onboard.app.observers import (
     FrameObserver,
@@ -200,6 +202,7 @@ class OnboardService:
         self.frames_in = 0
         self.arrival_gaps = ArrivalGaps()  # frames numbered by the camera that never reached the daemon
         self.frames_dropped = 0
+        self.frames_dropped_bunched = 0  # of those, dropped as frames arrived bunched (a link's burst, not the CPU)
         self.tracks_published = 0
         self.frames_failed = 0  # frames taken that a pipeline error stopped before they were processed
         self.latency_ms = RollingStats(1000)
@@ -422,13 +425,25 @@ class OnboardService:
             return
         dropped = self.queue.push((frame, received))
         if dropped:
+            oldest = self.queue.oldest()
+            bunched = oldest is not None and arrived_bunched(
+                oldest[1], oldest[0].time_boot_us, received, frame.time_boot_us
+            )
             with self._stats_lock:
                 self.frames_dropped += dropped
-            self.counter.count(
-                "dropped_queue",
-                f"pipeline behind: oldest frame dropped (queue of {self.config.input.queue_length})",
-                dropped,
-            )
+                if bunched:
+                    self.frames_dropped_bunched += dropped
+            queue_of = f"queue of {self.config.input.queue_length}"
+            if bunched:  # the pipeline may keep up: the link delivered frames together (see arrived_bunched)
+                arrived_ms = (received - oldest[1]) / 1e6
+                captured_ms = (frame.time_boot_us - oldest[0].time_boot_us) / 1e3
+                why = (
+                    f"frames arrived in a burst (the queued ones within {arrived_ms:.1f} ms, captured "
+                    f"{captured_ms:.0f} ms apart): oldest frame dropped ({queue_of})"
+                )
+            else:
+                why = f"pipeline behind: oldest frame dropped ({queue_of})"
+            self.counter.count("dropped_queue", why, dropped)
 
     # ------------------------------------------------------------------ pipeline thread
 
@@ -666,6 +681,7 @@ class OnboardService:
         self.watchdog.load(
             now,
             frames_dropped=self.frames_dropped,
+            frames_dropped_bunched=self.frames_dropped_bunched,
             estimates_stale=self.counter.counts.get("estimate_stale", 0),
             cpu_words=self.cpu_load.words(),
             estimator_silent_s=float(getattr(self.estimator, "silent_s", 0.0)),

@@ -229,7 +229,7 @@ class Watchdog:
         self._high_since_s: float | None = None
         self._high_n = 0
         self._high_max = 0.0
-        self._load_counts: tuple[int, int] | None = None
+        self._load_counts: tuple[int, int, int] | None = None  # dropped, stale, dropped as they arrived bunched
         self._load_since_s: float | None = None
         self._load_seen = (0, 0)  # dropped, stale since the overload was raised
         self._last_overload_s = -math.inf
@@ -581,6 +581,7 @@ class Watchdog:
         estimator_silent_s: float = 0.0,
         quota_bound: bool | None = None,
         stalled_s: float = 0.0,
+        frames_dropped_bunched: int = 0,
     ) -> None:
         """Update with the running counts of frames dropped and positions withheld as too old;
         ``cpu_words``: the CPU the daemon got, in words, for the message (see ``overload``);
@@ -589,8 +590,10 @@ class Watchdog:
         in the last interval (False: a quota that did not bind, so other work on the computer took the CPU; None:
         unknown), which decides the advice; ``stalled_s``: how long the daemon's main loop last stood still, when that
         was within :data:`OVERLOAD_CLEAR_S` (a stopped process, a paused or swapping computer; 0: none), named as the
-        cause instead of the CPU share when it is at least :data:`STALL_NAMED_S`."""
-        counts = (int(frames_dropped), int(estimates_stale))
+        cause instead of the CPU share when it is at least :data:`STALL_NAMED_S`; ``frames_dropped_bunched``: of
+        ``frames_dropped``, those dropped as the frames arrived bunched (:func:`onboard.app.frame_queue.arrived_bunched`:
+        a link holding and releasing them), named as the cause when every frame dropped since the last update was."""
+        counts = (int(frames_dropped), int(estimates_stale), int(frames_dropped_bunched))
         last, self._load_counts = self._load_counts, counts
         if last is None:
             return
@@ -615,6 +618,15 @@ class Watchdog:
                     "overload",
                     f"{seen}: the daemon stood still for {stalled_s:.1f} s (its process stopped, or this computer "
                     "paused or swapped), not a matter of its CPU share",
+                )
+            elif counts[1] == last[1] and counts[0] > last[0] and counts[2] - last[2] >= counts[0] - last[0]:
+                # the queue overflowed with frames that came together, captured a camera period apart: more CPU
+                # would not have kept them all
+                self._raise(
+                    "overload",
+                    f"{seen}: the frames arrived in bursts, faster than they were captured (a link or sender holding "
+                    "frames and releasing them together), and the queue keeps the newest only (input.queue_length); "
+                    "check the camera's link, or raise input.queue_length",
                 )
             elif counts[0] == last[0] and estimator_silent_s >= ESTIMATOR_SILENT_S:
                 # the frames keep up and the worker does not answer: a stopped or stalled process, not the CPU

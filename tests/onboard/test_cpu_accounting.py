@@ -372,3 +372,17 @@ def test_a_v1_container_finds_its_cgroup_at_the_controllers_mount_root(tmp_path,
     with caplog.at_level(logging.WARNING, "onboard.io.cpu_usage"):
         assert CpuUsageReader(tmp_path / "proc", tmp_path / "empty").cgroup_dir is None
     assert any("no cpu.stat" in rec.getMessage() for rec in caplog.records)
+
+
+def test_overload_names_frames_arriving_in_bursts_instead_of_the_cpu(caplog):
+    """Frames the link held and released ten at once overflowed the 4-frame queue: 111 of 300 dropped in a 10 s
+    burst phase, and the daemon was told it 'does not get the CPU it needs' (a frame-stream audit). Drops the
+    receiver saw arrive bunched are named as such; a drop of frames that came at the camera's pace is the CPU's."""
+    wd = _watchdog(caplog)
+    wd.load(0.0, frames_dropped=0, estimates_stale=0)
+    wd.load(1.0, frames_dropped=6, estimates_stale=0, cpu_words=" (it got 0.22 of a core)", frames_dropped_bunched=6)
+    (w,) = wd.active
+    assert "arrived in bursts" in w.message and "input.queue_length" in w.message
+    assert "CPU it needs" not in w.message and "0.22 of a core" not in w.message
+    wd.load(2.0, frames_dropped=8, estimates_stale=0, frames_dropped_bunched=6)  # 2 more, at the camera's pace
+    assert "does not get the CPU it needs" in wd.active[0].message

@@ -1271,6 +1271,39 @@ def test_a_frame_a_pipeline_error_stops_is_in_the_status_frame_counts():
     assert f["in"] == f["processed"] + f["dropped"] + f["rejected"] + f["queue_length"]
 
 
+@pytest.mark.parametrize("period_ns, bunched", [(0, 6), (33_333_333, 0)])
+def test_frames_dropped_from_a_burst_are_told_from_a_pipeline_behind(period_ns, bunched):
+    """Ten frames captured 33 ms apart arriving at once (a link holding and releasing them) overflow the 4-frame
+    queue: those drops were counted 'pipeline behind' and warned as the CPU's (a frame-stream audit). Frames that
+    arrive at the camera's pace and still overflow it are the pipeline's."""
+    import numpy as np
+
+    from onboard.core.irframe import IrFrame, encode_irframe
+
+    svc, clock = _quiet_service()
+    px = np.zeros((512, 640), np.uint8)
+    for k in range(10):
+        payload = encode_irframe(IrFrame(seq=k, time_boot_us=1_000_000 + 33_333 * k, pixels=px))
+        svc._on_frame(_Sample(payload))
+        clock.t_s += period_ns / 1e9
+    assert svc.frames_dropped == 6 and svc.frames_dropped_bunched == bunched
+
+
+class _Sample:
+    """A zenoh sample as the frame callback reads it: untyped, its payload's length and bytes."""
+
+    def __init__(self, payload: bytes) -> None:
+        self.encoding = None
+        self.payload = self
+        self._bytes = payload
+
+    def __len__(self) -> int:
+        return len(self._bytes)
+
+    def to_bytes(self) -> bytes:
+        return self._bytes
+
+
 @pytest.mark.parametrize("worker, counted", [("thread", 0.0), ("inline", 0.0), ("process", 5.0)])
 def test_the_cpu_status_adds_the_estimators_cpu_only_from_a_worker_process(worker, counted):
     """/proc/self/stat holds a thread worker's CPU already; adding the worker's own count too put gets_share above the
