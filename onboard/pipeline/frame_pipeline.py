@@ -9,10 +9,11 @@ object frame by frame.  One call::
 
 Steps of :meth:`FramePipeline.process` (time ``t = frame.time_boot_us``, boot clock):
 
-1. Admission (stateful, needs no pixels): frame size equals the configured camera; then
+1. Admission (stateful, needs no pixels but a resend's): frame size equals the configured camera; then
    :class:`~onboard.pipeline.admission.FrameAdmission` on (seq, capture time): each refused frame is
-   counted under what is wrong with it (``frame_duplicate``, ``frame_out_of_order``,
-   ``frame_time_ahead``, ``frame_time_behind``) and costs only itself; a clock step, an autopilot
+   counted under what is wrong with it (``frame_duplicate``, ``frame_duplicate_conflict``: the last taken frame's seq
+   and stamp with other pixels, ``frame_out_of_order``, ``frame_time_ahead``, ``frame_time_behind``) and costs only
+   itself; a clock step, an autopilot
    reboot or a sender restart is accepted once a run of mutually consistent frames confirms it
    (``frame_time_reset``, ``frame_stream_restart``: the estimator restarts; ``frame_sequence_reset``).  After a
    step the telemetry did not share, the frames get no pose (``pose_clock_apart``, :attr:`FramePipeline.clock_apart_s`)
@@ -65,6 +66,7 @@ Refused frames raise :class:`FrameRejected` (``reason``) after being counted as 
 in the shared :class:`~onboard.core.counters.RejectCounter`: ``frame_short``, ``frame_magic``,
 ``frame_version``, ``frame_encoding``, ``frame_dims``, ``frame_size``, ``frame_too_large``,
 ``frame_field`` (decode, :mod:`onboard.core.irframe`), ``frame_dims_mismatch``, ``frame_duplicate``,
+``frame_duplicate_conflict``,
 ``frame_out_of_order``, ``frame_time_ahead``, ``frame_time_behind``, ``frame_image`` (the tracker refused the
 frame's pixels); and, the tracker at fault, not the frame, ``tracker_error`` (``update`` raised) and
 ``tracker_output_invalid`` (its answer is no track update: None, a centre or box not finite, a measured centre off the
@@ -272,6 +274,7 @@ class FramePipeline:
         #: pose); None: the clocks agree.  The daemon's watchdog warns ``camera_clock_apart`` from it.
         self.clock_apart_s: float | None = None
         self._encoding: int | None = None  # the last accepted frame's (an IrFrame encoding code)
+        self._last_taken: IrFrame | None = None  # the last accepted frame: a resend of it is compared pixel by pixel
         #: warnings (``gimbal_mismatch``, ``camera_mismatch``) that withhold the line of sight and the 3-D position
         #: (the daemon sets them from its watchdog); the image fields still go out.  Set by another thread: read once
         #: per frame.
@@ -308,6 +311,7 @@ class FramePipeline:
     def reset(self) -> None:
         """Forget the stream (sequence/time), the track and the estimate; counters continue."""
         self._admission.reset()
+        self._last_taken = None
         if hasattr(self.tracker, "reset"):
             self.tracker.reset()
         self._reset_estimator("pipeline reset")
@@ -558,7 +562,22 @@ class FramePipeline:
                 reference_us = None
         verdict = self._admission.admit(frame.seq, frame.time_boot_us, reference_us)
         if not verdict.accepted:
+            last = self._last_taken
+            if (
+                verdict.reason == "duplicate"
+                and last is not None
+                and (last.seq, last.time_boot_us) == (frame.seq, frame.time_boot_us)
+                and not np.array_equal(last.pixels, frame.pixels)
+            ):
+                # two images claim one capture (a second sender on the key, a corrupted resend): the first was taken,
+                # and it may be the wrong one; only the last taken frame's pixels are kept to compare with
+                self._refuse(
+                    "duplicate_conflict",
+                    f"{verdict.message}, with other pixels than the frame taken: a second sender on the frame key, "
+                    "or a corrupted resend",
+                )
             self._refuse(verdict.reason, verdict.message)
+        self._last_taken = frame
         if verdict.reason:
             detail = verdict.message + ("; estimator restarted" if verdict.restart else "")
             self.counter.count(f"frame_{verdict.reason}", detail)

@@ -345,6 +345,24 @@ def test_a_change_of_encoding_mid_stream_is_counted_once_per_change():
     assert {k for k in rig.counter.counts if k.startswith("frame_")} <= ACCEPTED_FRAME_EVENTS
 
 
+def test_a_resent_frame_with_other_pixels_is_counted_apart_from_an_exact_duplicate():
+    """A frame sent again with its seq and stamp but other pixels (a second sender on the key, or a corrupted resend)
+    was refused as an ordinary duplicate, logged "frame seq N again": nothing said that two images claimed one
+    capture, nor that the one taken may be the wrong one (a frame-stream audit)."""
+    rig = Rig(ready_after=100)
+    for k in (0, 1, 2):
+        rig.step(k)
+    taken = rig.scene.frame(2)
+    other = IrFrame(seq=taken.seq, time_boot_us=taken.time_boot_us, pixels=np.roll(taken.pixels, 40, axis=1))
+    with pytest.raises(FrameRejected) as ei:
+        rig.pipe.process(other)
+    assert ei.value.reason == "duplicate_conflict"
+    with pytest.raises(FrameRejected) as ei:
+        rig.pipe.process(taken)
+    assert ei.value.reason == "duplicate"
+    assert rig.counter.counts == {"frame_duplicate_conflict": 1, "frame_duplicate": 1}
+
+
 def test_duplicate_and_out_of_order_frames_are_refused():
     rig = Rig(ready_after=100)
     for k in (0, 1, 3):
