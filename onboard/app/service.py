@@ -8,7 +8,7 @@ Threads (nothing else runs concurrently):
   (:func:`onboard.core.irframe.decode_irframe`: microseconds, the pixels stay a view), counting each
   refusal as ``frame_<reason>``, and pushes ``(IrFrame, received_mono_ns)`` into a bounded
   :class:`FrameQueue`; when full the *oldest* frame is dropped and counted (``dropped_queue``; also
-  ``frames_dropped_bunched`` when the queued frames arrived much faster than they were captured, a link's burst,
+  ``frames_dropped_bunched`` when the queued frames arrived much faster than they were captured, a burst,
   which the ``overload`` warning names instead of the CPU).
   It never blocks.  The output taps (:mod:`onboard.app.observers`) see each frame as received.
 * **pipeline thread**: pops frames, runs :meth:`FramePipeline.process` (admission,

@@ -619,14 +619,21 @@ class Watchdog:
                     f"{seen}: the daemon stood still for {stalled_s:.1f} s (its process stopped, or this computer "
                     "paused or swapped), not a matter of its CPU share",
                 )
-            elif counts[1] == last[1] and counts[0] > last[0] and counts[2] - last[2] >= counts[0] - last[0]:
-                # the queue overflowed with frames that came together, captured a camera period apart: more CPU
-                # would not have kept them all
+            elif (
+                counts[1] == last[1]
+                and counts[0] > last[0]
+                and counts[2] - last[2] >= counts[0] - last[0]
+                and quota_bound is not True
+            ):
+                # the queue overflowed with frames that came together, captured a camera period apart: a faster
+                # pipeline would not have kept them all.  Where they were held is not known here: a CPU quota running
+                # out stops the receiving thread too (then the CPU's words above), and so can a starved computer
                 self._raise(
                     "overload",
-                    f"{seen}: the frames arrived in bursts, faster than they were captured (a link or sender holding "
-                    "frames and releasing them together), and the queue keeps the newest only (input.queue_length); "
-                    "check the camera's link, or raise input.queue_length",
+                    f"{seen}: the frames arrived in bursts, faster than they were captured, and the queue keeps the "
+                    f"newest only (input.queue_length){cpu_words}: something held them and released them together, "
+                    "the camera's link or sender, or this computer's scheduler while other work takes the CPU; check "
+                    "the link, or raise input.queue_length",
                 )
             elif counts[0] == last[0] and estimator_silent_s >= ESTIMATOR_SILENT_S:
                 # the frames keep up and the worker does not answer: a stopped or stalled process, not the CPU

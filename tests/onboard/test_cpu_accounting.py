@@ -382,7 +382,10 @@ def test_overload_names_frames_arriving_in_bursts_instead_of_the_cpu(caplog):
     wd.load(0.0, frames_dropped=0, estimates_stale=0)
     wd.load(1.0, frames_dropped=6, estimates_stale=0, cpu_words=" (it got 0.22 of a core)", frames_dropped_bunched=6)
     (w,) = wd.active
-    assert "arrived in bursts" in w.message and "input.queue_length" in w.message
-    assert "CPU it needs" not in w.message and "0.22 of a core" not in w.message
+    assert "arrived in bursts" in w.message and "input.queue_length" in w.message and "0.22 of a core" in w.message
+    assert "CPU it needs" not in w.message
     wd.load(2.0, frames_dropped=8, estimates_stale=0, frames_dropped_bunched=6)  # 2 more, at the camera's pace
     assert "does not get the CPU it needs" in wd.active[0].message
+    # a CPU quota that ran out stops the receiving thread too, which bunches the frames: the CPU's words
+    wd.load(3.0, frames_dropped=12, estimates_stale=0, frames_dropped_bunched=10, quota_bound=True)
+    assert "does not get the CPU it needs" in wd.active[0].message and "cpus" in wd.active[0].message
