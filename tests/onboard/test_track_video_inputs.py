@@ -312,18 +312,28 @@ def test_a_video_cut_short_is_tracked_as_far_as_it_decodes_with_a_warning(tmp_pa
     assert warned[0].startswith(f"{mkv}: decoded {decoded} of about 20 frames its duration implies"), warned
 
 
-def test_a_damaged_video_that_decodes_to_the_end_is_warned_about_once(tmp_path, caplog):
-    """Bytes flipped inside one frame's slice data (away from the length prefixes, so the decoder can go on):
-    FFmpeg conceals the damage and says so only in its log."""
+def _mp4_with_its_middle_packet(tmp_path, damage):
+    """A 12-frame mp4 (faststart) whose middle frame's packet bytes ``damage(packet_bytes)`` replaced."""
     av = pytest.importorskip("av")
     mp4 = _write_video(tmp_path / "v.mp4", [_noise(k, 64, 64) for k in range(12)], {"movflags": "faststart"})
     with av.open(str(mp4)) as c:
         packets = [p for p in c.demux(video=0) if p.size]
     victim = packets[len(packets) // 2]
     data = bytearray(mp4.read_bytes())
-    middle = victim.pos + victim.size // 2
-    data[middle : middle + 16] = bytes(b ^ 0x5A for b in data[middle : middle + 16])
+    data[victim.pos : victim.pos + victim.size] = damage(bytes(data[victim.pos : victim.pos + victim.size]))
     mp4.write_bytes(bytes(data))
+    return mp4
+
+
+def _flip_16_middle_bytes(packet: bytes) -> bytes:
+    m = len(packet) // 2
+    return packet[:m] + bytes(x ^ 0x5A for x in packet[m : m + 16]) + packet[m + 16 :]
+
+
+def test_a_damaged_video_that_decodes_to_the_end_is_warned_about_once(tmp_path, caplog):
+    """Bytes flipped inside one frame's slice data (away from the length prefixes, so the decoder can go on):
+    FFmpeg conceals the damage and says so only in its log."""
+    mp4 = _mp4_with_its_middle_packet(tmp_path, _flip_16_middle_bytes)
     assert main([str(mp4), "--out", str(tmp_path / "t.txt"), "--quiet"]) == EXIT_OK
     (warned,) = _records(caplog, logging.WARNING)
     assert warned.startswith(f"{mp4}: decoded 12 frames; ") and "decoder error" in warned, warned
@@ -334,14 +344,7 @@ def test_a_frame_the_decoder_cannot_decode_ends_the_video_there_its_frames_befor
     the run in an error with nothing written, the frames before it tracked for nothing, where a file cut short at
     the same place is tracked as far as it decodes; the frames after it are not read, so none takes an earlier
     one's number."""
-    av = pytest.importorskip("av")
-    mp4 = _write_video(tmp_path / "v.mp4", [_noise(k, 64, 64) for k in range(12)], {"movflags": "faststart"})
-    with av.open(str(mp4)) as c:
-        packets = [p for p in c.demux(video=0) if p.size]
-    victim = packets[len(packets) // 2]
-    data = bytearray(mp4.read_bytes())
-    data[victim.pos : victim.pos + victim.size] = bytes(victim.size)
-    mp4.write_bytes(bytes(data))
+    mp4 = _mp4_with_its_middle_packet(tmp_path, lambda packet: bytes(len(packet)))  # its length prefix too
     out = tmp_path / "t.txt"
     assert main([str(mp4), "--out", str(out), "--quiet"]) == EXIT_OK
     assert out.is_file()
