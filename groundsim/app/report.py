@@ -1,4 +1,5 @@
-"""``python -m groundsim report FLIGHT.mcap [--truth SIM.mcap] [--out DIR]``: plots of a recorded flight.
+"""``python -m groundsim report FLIGHT.mcap [FLIGHT.1.mcap ...] [--truth SIM.mcap] [--out DIR]``: plots of a recorded
+flight.
 
 The daemon's recording (``python -m onboard --record``) is replayed through a new pipeline with the
 recording's own configuration (:func:`onboard.app.replay.replay`: the estimator inline, the recorded frames
@@ -6,7 +7,10 @@ and poses), and the replayed tracks are drawn with the eval report's plots
 (:func:`groundsim.evaluation.flight_report.write_flight_report`): the trajectory, the error against the
 truth when there is one (the simulator's recording of the same run, ``groundsim run --record``, as
 ``--truth``; else the flight's own ``/groundsim/truth`` channel, if any), and one frame.  The flight report
-belongs to the ground side: the onboard package never imports the simulator.
+belongs to the ground side: the onboard package never imports the simulator.  The files of a rotated recording, given
+in order, are one flight (:func:`onboard.app.replay.load_flight`, as ``python -m onboard.replay`` reads them: checked
+to be one recording's, in order, without a gap); given one file, the report is of that file, and a note names the
+files after it.
 
 A ``--truth`` recording that covers only part of the flight (cut short: the simulator killed, a disk full) still
 gives the errors of the frames it covers; one note says how much of the flight that is, and ``summary.json``'s
@@ -34,7 +38,13 @@ SIM_RECORDER = "groundsim run --record"  # what writes --truth's file
 
 def add_report(p: argparse.ArgumentParser) -> None:
     """The ``report`` command's options."""
-    p.add_argument("mcap", metavar="FLIGHT.mcap", help="a recording of python -m onboard --record")
+    p.add_argument(
+        "mcap",
+        metavar="FLIGHT.mcap",
+        nargs="+",
+        help="a recording of python -m onboard --record; several: the files of one rotated recording, in order "
+        "(FLIGHT.mcap FLIGHT.1.mcap ...), reported as one flight",
+    )
     p.add_argument(
         "--truth",
         default=None,
@@ -79,7 +89,7 @@ class _Pixels(Mapping):
 
     def __getitem__(self, key):
         ref, _rx_ns = self._rec.frames[key][0]
-        return self._decode(key[0], ref.raw_image(), self._rec.path).pixels
+        return self._decode(key[0], ref.raw_image(), ref.path).pixels
 
     def __contains__(self, key) -> bool:  # Mapping's own would read and decode the frame to answer
         return key in self._rec.frames
@@ -210,6 +220,12 @@ def truth_coverage(tracks: list, truth: list, cut_short: str | None = None) -> T
     )
 
 
+def _title(rec) -> str:
+    """The report's name for the flight: its file, or its first and last file of a rotated recording."""
+    files = [os.path.basename(p) for p in rec.files]
+    return files[0] if len(files) == 1 else f"{files[0]} .. {files[-1]}"
+
+
 def cmd_report(args) -> int:
     """Replay the recording, draw the report; print the files written.  Ctrl-C: one line, exit 130."""
     from groundsim.evaluation.flight_report import REPORT_SCHEMA, holds_flight_report, write_flight_report
@@ -217,7 +233,9 @@ def cmd_report(args) -> int:
     from onboard.app.replay import (
         ReplayProgress,
         config_of,
+        load_flight,
         load_recording,
+        more_files_note,
         no_frames_text,
         recorder_drops_note,
         replay,
@@ -230,12 +248,18 @@ def cmd_report(args) -> int:
     out = make_out_dir(args.out)  # before the replay: a folder that cannot be made fails at once
     before = set(out.glob("*"))
     try:
-        rec = load_recording(args.mcap)
+        rec = load_flight(args.mcap)
         if not rec.inputs:
             raise InputError(no_frames_text(rec))
+        if len(rec.files) > 1:
+            print(f"one flight in {len(rec.files)} files of a rotated recording: {', '.join(rec.files)}")
         if rec.truncated:
-            print(f"note: {args.mcap} is cut short ({rec.truncated}): the report covers it to its last chunk")
-        for note in (rotated_part_note(rec), recorder_drops_note(rec)):
+            print(f"note: {rec.name} is cut short ({rec.truncated}): the report covers it to its last chunk")
+        for note in (
+            rotated_part_note(rec),
+            more_files_note(rec, "python -m groundsim report"),
+            recorder_drops_note(rec),
+        ):
             if note is not None:
                 print(f"note: {note}")
         truth = rec.truth
@@ -255,7 +279,7 @@ def cmd_report(args) -> int:
             why = truth_mismatch(rec.inputs, truth)
             if why is not None:
                 raise InputError(
-                    f"--truth {args.truth}: not the truth of {args.mcap}: {why}"
+                    f"--truth {args.truth}: not the truth of {rec.name}: {why}"
                     + (f" (the file is cut short: {truth_cut})" if truth_cut else "")
                 )
         config = config_of(rec, args.config)
@@ -267,16 +291,15 @@ def cmd_report(args) -> int:
         extra: dict = {"frames_missing": res.frames_missing, "frames_refused": res.frames_refused}
         if res.frames_missing or res.frames_refused:
             print(
-                f"note: {args.mcap}: of the {len(rec.inputs)} frames the daemon took, {res.frames_missing} are missing "
+                f"note: {rec.name}: of the {len(rec.inputs)} frames the daemon took, {res.frames_missing} are missing "
                 f"from the file (the recorder dropped them) and {res.frames_refused} were refused in the replay: "
                 f"the report is of the {len(res.tracks)} tracks of the rest"
             )
         if coverage is not None and coverage.partial:
             print(coverage.note(args.truth))
             extra["truth_covers"] = asdict(coverage)
-        name = os.path.basename(rec.path)
         # a full disk while a plot is saved: one line naming --out, as the folder's own checks are
-        paths = writing(out, write_flight_report, out, res.tracks, poses, frames, truth or None, name, extra)
+        paths = writing(out, write_flight_report, out, res.tracks, poses, frames, truth or None, _title(rec), extra)
     except KeyboardInterrupt:
         written = (set(out.glob("*")) - before) if out.is_dir() else set()
         return print_interrupted(f"partial report in {out} ({len(written)} files)" if written else "nothing written")

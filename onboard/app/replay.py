@@ -1,7 +1,8 @@
 """``python -m onboard.replay``: a recorded flight (:mod:`onboard.io.record`) fed again through the pipeline.
 
-    python -m onboard.replay FILE.mcap [--rate max|realtime] [--jobs 1|2] [--config FILE] [--set FIELD=VALUE]...
-                             [--out tracks.jsonl] [--objects-out objects.jsonl] [--compare] [--live-view PORT]
+    python -m onboard.replay FILE.mcap [FILE.1.mcap ...] [--rate max|realtime] [--jobs 1|2] [--config FILE]
+                             [--set FIELD=VALUE]... [--out tracks.jsonl] [--objects-out objects.jsonl] [--compare]
+                             [--live-view PORT]
 
 The recording's ``irtrack.frame_input/1`` messages say which frames the daemon's pipeline took, in
 which order, and the pose it interpolated for each; the frames themselves are the
@@ -31,9 +32,19 @@ recorded track has none.
 
 Not replayed either: the frames whose ``irtrack.frame_input/1`` the recorder dropped (its backlog full): the file
 shows no trace of them, so replay prints the drops the last recorded status counts (:func:`recorder_drops`).
-A later file of a rotated recording (``FILE.N.mcap``) is replayed from a fresh pipeline, while the daemon's went on
-from the files before it: its tracks and objects need not be the recorded ones, and replay says so
-(:func:`rotated_part_note`).
+
+**A rotated recording** (``FILE.mcap``, ``FILE.1.mcap``, ...: ``record.max_file_mb``, ``record.max_file_s``) is one
+flight when its files are given in order, ``python -m onboard.replay FILE.mcap FILE.1.mcap FILE.2.mcap``: one pipeline
+is fed across them, as the daemon's was, so the tracks go on over the files' boundaries and the outputs and
+``--compare`` are the whole flight's (:func:`load_flight`).  The files must be one recording's (its ``recording_id``;
+an older recorder's files without one are checked on what they have: :mod:`onboard.app.flight_parts`), each once,
+in order, without a gap: else a refusal (exit 2) names the file and what is wrong.  A flight that starts at a later
+file (file 0 deleted by ``record.max_files``, or not given) is replayed from a fresh pipeline at that file, while the
+daemon's went on from the files before it: its tracks and objects need not be the recorded ones, and replay says so
+(:func:`rotated_part_note`).  Giving only ``FILE.mcap`` replays that file only, as asked (quick; file 0's
+``--compare`` holds alone): the files after it are not picked up by themselves, but a note names them and the command
+line that replays the whole flight (:func:`more_files_note`; a shell's ``FILE.*.mcap`` sorts ``FILE.10`` before
+``FILE.2``, which the order check refuses).
 
 ``--rate realtime`` paces frames at their recorded receive times; ``max`` (default) runs as fast as
 the pipeline goes and prints the speed against real time.  The flight report (plots of a recording) is
@@ -113,6 +124,7 @@ from onboard.io.record import FRAME_INPUT_TOPIC, IMAGING_POSE_TOPIC, TRUTH_TOPIC
 __all__ = [
     "Recording",
     "load_recording",
+    "load_flight",
     "ReplayResult",
     "replay",
     "ReplayProgress",
@@ -121,6 +133,7 @@ __all__ = [
     "recorder_drops",
     "recorder_drops_note",
     "rotated_part_note",
+    "more_files_note",
     "main",
 ]
 
@@ -153,6 +166,20 @@ class Recording:
     # the live view shows the status as it was, between the frames it came between
     statuses: list = field(default_factory=list)
     input_log_ns: list = field(default_factory=list)
+    # the files of a rotated recording replayed as one flight, in order (:func:`load_flight`; ``path`` is the first);
+    # empty for one file
+    parts: list = field(default_factory=list)
+
+    @property
+    def files(self) -> list[str]:
+        """The files this recording was read from, in order."""
+        return list(self.parts) or [self.path]
+
+    @property
+    def name(self) -> str:
+        """The recording in a message: its file, or its first file and how many more."""
+        more = len(self.files) - 1
+        return self.path if more == 0 else f"{self.path} (+{more} file{'s' if more > 1 else ''})"
 
 
 def load_recording(path: str) -> Recording:
@@ -233,10 +260,69 @@ def load_recording(path: str) -> Recording:
     )
 
 
+def load_flight(paths: str | Sequence[str]) -> Recording:
+    """The :class:`Recording` of one flight recorded in the files ``paths`` (a rotated recording's ``FILE.mcap``,
+    ``FILE.1.mcap``, ... in that order; one path: :func:`load_recording`'s): every file read as
+    :func:`load_recording` reads it, then joined in order -- a frame whose image went into one file and whose
+    frame input into the next is found.  InputError naming the file when they are not one recording's files, each
+    once, in order, without a gap (:func:`onboard.app.flight_parts.parts_problem`); the first may be a later file
+    than file 0 (:func:`rotated_part_note` says so)."""
+    from onboard.app.flight_parts import FilePart, parts_problem
+
+    recs = [load_recording(p) for p in ([paths] if isinstance(paths, str) else paths)]
+    if len(recs) == 1:
+        return recs[0]
+    problem = parts_problem(
+        [
+            FilePart(
+                r.path,
+                r.metadata,
+                int(r.inputs[0]["time_boot_us"]) if r.inputs else None,
+                int(r.inputs[-1]["time_boot_us"]) if r.inputs else None,
+            )
+            for r in recs
+        ]
+    )
+    if problem is not None:
+        raise InputError(problem)
+    frames: dict = {}
+    imaging_poses: dict = {}
+    counts: collections.Counter = collections.Counter()
+    for r in recs:
+        for key, copies in r.frames.items():
+            frames.setdefault(key, []).extend(copies)
+        for key, poses in r.imaging_poses.items():
+            imaging_poses.setdefault(key, []).extend(poses)
+        counts.update(r.counts)
+    cut = [f"{r.path}: {r.truncated}" for r in recs if r.truncated is not None]
+    first_log = [r.first_log_ns for r in recs if r.first_log_ns is not None]
+    last_log = [r.last_log_ns for r in recs if r.last_log_ns is not None]
+    return Recording(
+        recs[0].path,
+        recs[0].metadata,
+        frames,
+        [i for r in recs for i in r.inputs],
+        [t for r in recs for t in r.tracks],
+        [t for r in recs for t in r.truth],
+        first_log[0] if first_log else None,
+        last_log[-1] if last_log else None,
+        "; ".join(cut) if cut else None,
+        dict(counts),
+        [o for r in recs for o in r.objects],
+        imaging_poses,
+        [s for r in recs for s in r.statuses],
+        [t for r in recs for t in r.input_log_ns],
+        [r.path for r in recs],
+    )
+
+
 def recorder_drops(rec: Recording) -> dict[str, int]:
     """Messages the recorder dropped, per topic (its backlog past ``record.queue_mb``, or after it stopped), as the
     last status in the file that says so has it (``record.dropped_by_topic``: over the whole recording, rotated files
-    before this one included, up to that status); {} when none says.  The file cannot show them itself: a frame input
+    before this one included, up to that status); {} when none says.  Of a flight of several files
+    (:func:`load_flight`) that is its last file's last status: the count is the recording's, so it is the flight's
+    (a sum over the files would count each earlier file's drops again), with the files before the first given
+    (:func:`rotated_part_note`) included.  The file cannot show them itself: a frame input
     the recorder dropped leaves no trace in it (the frame's ``seq`` gap reads as the daemon's frame queue dropping
     the frame), and replay feeds the pipeline fewer frames than the daemon's took."""
     for _log_ns, data in reversed(rec.statuses):
@@ -255,7 +341,8 @@ def recorder_drops_note(rec: Recording) -> str | None:
         return None
     inputs = drops.get(FRAME_INPUT_TOPIC, 0)
     return (
-        f"{rec.path}: the recorder dropped {sum(drops.values())} messages (its last status in the file, "
+        f"{rec.name}: the recorder dropped {sum(drops.values())} messages (its last status in the "
+        f"{'file' if len(rec.files) == 1 else 'last file'}, "
         f"record.dropped_by_topic: {', '.join(f'{n} on {t}' for t, n in sorted(drops.items()))})"
         + (
             f"; {inputs} frames the daemon's pipeline took are not in the file, so not replayed: the tracks after "
@@ -267,17 +354,51 @@ def recorder_drops_note(rec: Recording) -> str | None:
 
 
 def rotated_part_note(rec: Recording) -> str | None:
-    """One line when ``rec`` is a later file of a rotated recording (its metadata's ``file_index`` past 0: the
-    daemon's ``FILE.N.mcap``), else None.  The daemon's pipeline went on from the earlier files' frames with their
-    tracks, ids and frame count; replay starts it afresh at this file's first frame."""
+    """One line when ``rec`` starts at a later file of a rotated recording (its first file's ``file_index`` past 0:
+    the daemon's ``FILE.N.mcap``), else None.  The daemon's pipeline went on from the earlier files' frames with their
+    tracks, ids and frame count; replay starts it afresh at this file's first frame.  When file 0 is beside it, the
+    line says to give it first."""
+    from onboard.io.record_files import rotation_base
+
     index = rec.metadata.get("file_index", "0")
     if not index.isdigit() or int(index) == 0:
         return None
+    base = rotation_base(rec.path, int(index))
+    beside = (
+        f"; {base} and the files after it are beside it: give them first, in order, to replay the flight"
+        if base is not None and os.path.isfile(base)
+        else ""
+    )
     return (
         f"{rec.path}: file {index} of a rotated recording: replayed from its first frame with no tracks, while the "
         f"daemon's pipeline went on from the {int(index)} file(s) before it: tracks (their ids, their 3-D), objects "
         "and their frame_index need not be the recorded ones; a frame received before the file began is in the one "
-        "before (missing from this one)"
+        f"before (missing from this one){beside}"
+    )
+
+
+def more_files_note(rec: Recording, command: str) -> str | None:
+    """One line when the rotated recording ``rec`` was read from goes on in files beside its last that were not
+    given (``FILE.N.mcap`` after it), naming them and the ``command`` line that gives the whole flight; else None.
+    They are not read by themselves: the file named is the file replayed (quick; a first file's ``--compare``
+    holds alone), and a flight of twelve files is the user's to ask for."""
+    from onboard.io.record_files import rotated_path, rotated_paths_after, rotation_base
+
+    index = rec.metadata.get("file_index", "0")
+    if not index.isdigit():
+        return None
+    first = int(index)
+    base = rotation_base(rec.path, first)
+    if base is None:
+        return None
+    more = rotated_paths_after(base, first + len(rec.files) - 1)
+    if not more:
+        return None
+    before = [rotated_path(base, i) for i in range(first)]
+    flight = (before if all(os.path.isfile(p) for p in before) else []) + rec.files + more
+    return (
+        f"{rec.files[-1]}: the recording goes on in {len(more)} more file(s) beside it, not replayed: "
+        f"{', '.join(more)}; the whole flight: {command} {' '.join(flight)}"
     )
 
 
@@ -286,10 +407,10 @@ def no_frames_text(rec: Recording) -> str:
     configuration in the metadata) made while no IR frame came, or not a daemon's recording at all."""
     if rec.metadata.get("config_yaml") is not None:
         return (
-            f"{rec.path}: the daemon recorded no frame taken (no irtrack.frame_input messages): no IR frames reached "
+            f"{rec.name}: the daemon recorded no frame taken (no irtrack.frame_input messages): no IR frames reached "
             "it while it recorded (the simulator or camera not running, or not on its zenoh key)"
         )
-    return f"{rec.path}: no irtrack.frame_input messages (not a recording of python -m onboard --record?)"
+    return f"{rec.name}: no irtrack.frame_input messages (not a recording of python -m onboard --record?)"
 
 
 def config_of(rec: Recording, config_path: str | None = None, overrides: dict | None = None):
@@ -397,7 +518,7 @@ def _frames_taken(rec: Recording) -> Iterator[tuple[int, dict, Any]]:
             continue
         used[key] = k + 1
         ref, _rx_ns = cands[k]
-        yield i, inp, irframe_from_rawimage(key[0], ref.raw_image(), f"{rec.path}: frame seq {key[0]}")
+        yield i, inp, irframe_from_rawimage(key[0], ref.raw_image(), f"{ref.path}: frame seq {key[0]}")
 
 
 class _TappedTracker:
@@ -644,7 +765,13 @@ def build_parser() -> argparse.ArgumentParser:
         f"output that cannot be written (checked before the replay) or a bad option; {EXIT_DIFFERENT} --compare found "
         f"a difference; {EXIT_INTERRUPTED} Ctrl-C or SIGTERM.",
     )
-    p.add_argument("mcap", metavar="FILE.mcap", help="a recording of python -m onboard --record")
+    p.add_argument(
+        "mcap",
+        metavar="FILE.mcap",
+        nargs="+",
+        help="a recording of python -m onboard --record; several: the files of one rotated recording, replayed as "
+        "one flight in the order given (FILE.mcap FILE.1.mcap FILE.2.mcap ...)",
+    )
     p.add_argument("--rate", choices=("max", "realtime"), default="max", help="pacing (default: %(default)s)")
     p.add_argument(
         "--jobs",
@@ -710,7 +837,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     if args.report is not None or args.truth is not None:
         print(
-            f"python -m onboard.replay: the flight report moved: python -m groundsim report {args.mcap}",
+            f"python -m onboard.replay: the flight report moved: python -m groundsim report {' '.join(args.mcap)}",
             file=sys.stderr,
         )
         return EXIT_CONFIG
@@ -727,36 +854,40 @@ def _run(args: argparse.Namespace, progress: _Progress) -> int:
     from onboard.app.config import OnboardConfigError
 
     try:
-        clash = same_file_clash([("--out", args.out), ("--objects-out", args.objects_out)], [("MCAP", args.mcap)])
+        clash = same_file_clash(
+            [("--out", args.out), ("--objects-out", args.objects_out)], [("MCAP", path) for path in args.mcap]
+        )
         if clash is not None:
             raise InputError(clash)
         for path in (args.out, args.objects_out):
             if path:
                 _check_writable(path)
         overrides = config_overrides(args.set)
-        rec = load_recording(args.mcap)
+        rec = load_flight(args.mcap)
         if not rec.inputs:  # nothing to replay; without a cut, the flight report's words (it refuses the file too)
             raise InputError(
-                f"{args.mcap}: file cut short ({rec.truncated}) before its first irtrack.frame_input message"
+                f"{rec.name}: file cut short ({rec.truncated}) before its first irtrack.frame_input message"
                 if rec.truncated
                 else no_frames_text(rec)
             )
         if not rec.frames:  # the pipeline's inputs without their pixels: a replay would feed nothing and say zeros
             raise InputError(
-                f"{args.mcap}: {len(rec.inputs)} frames taken by the pipeline and none of their images recorded "
+                f"{rec.name}: {len(rec.inputs)} frames taken by the pipeline and none of their images recorded "
                 "(record.frames: false, or every frame dropped by the recorder): nothing to replay"
             )
         config = config_of(rec, args.config, overrides)
     except (OnboardConfigError, IrtrackError) as exc:
         print(str(exc), file=sys.stderr)
         return EXIT_CONFIG
+    if len(rec.files) > 1:
+        print(f"one flight in {len(rec.files)} files of a rotated recording: {', '.join(rec.files)}")
     print(
-        f"{args.mcap}: {sum(rec.counts.values())} messages, {len(rec.inputs)} frames taken by the pipeline, "
+        f"{rec.name}: {sum(rec.counts.values())} messages, {len(rec.inputs)} frames taken by the pipeline, "
         f"{len(rec.tracks)} recorded tracks"
         + (f", {len(rec.objects)} frames of objects" if rec.objects else "")
         + (f"; file cut short ({rec.truncated}): read to its last chunk" if rec.truncated else "")
     )
-    for note in (rotated_part_note(rec), recorder_drops_note(rec)):
+    for note in (rotated_part_note(rec), more_files_note(rec, "python -m onboard.replay"), recorder_drops_note(rec)):
         if note is not None:
             print(note)
     live = None

@@ -74,7 +74,10 @@ topic                             schema                         encoding       
   Numbers are wrapped to the record's 32 bits.
 
 Metadata record ``irtrack``: ``config_yaml`` (the effective configuration, what replay uses by
-default), ``vehicle``, ``started_utc``, ``recorder`` (``onboard`` or ``groundsim``), ``file_index``.
+default), ``vehicle``, ``started_utc`` (when this file was opened), ``recorder`` (``onboard`` or ``groundsim``),
+``file_index`` (0, 1, ... of a rotated recording) and ``recording_id`` (random, the same in every file of one
+recording: what tells a replay of several files that they are one flight's; the other fields do not -- a daemon
+restarted with the same configuration records another flight with the same ones).
 
 **Never stalls the caller**: every ``on_*`` method timestamps, numbers, appends to a deque and returns
 (microseconds); a writer thread encodes (protobuf, JSON) and writes.  When the backlog passes
@@ -120,6 +123,7 @@ import math
 import os
 import threading
 import time
+import uuid
 from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING, Annotated, Any, Literal
 
@@ -312,6 +316,7 @@ class FlightRecorder:
         self._meta = {str(k): str(v) for k, v in (metadata or {}).items()}
         self._meta.setdefault("vehicle", vehicle)
         self._meta.setdefault("recorder", recorder)
+        self._meta.setdefault("recording_id", uuid.uuid4().hex)
         self._clock_ns = clock_ns
         self._mono0 = clock_ns()
         self._wall0 = wall_ns()

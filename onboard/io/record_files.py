@@ -5,7 +5,15 @@ from __future__ import annotations
 
 import os
 
-__all__ = ["folder_write_problem", "free_disk_bytes", "free_recording_path", "record_path_problem", "rotated_path"]
+__all__ = [
+    "folder_write_problem",
+    "free_disk_bytes",
+    "free_recording_path",
+    "record_path_problem",
+    "rotated_path",
+    "rotation_base",
+    "rotated_paths_after",
+]
 
 
 def rotated_path(path: str, index: int) -> str:
@@ -14,6 +22,24 @@ def rotated_path(path: str, index: int) -> str:
         return path
     stem = path[: -len(".mcap")] if path.endswith(".mcap") else path
     return f"{stem}.{index}.mcap"
+
+
+def rotation_base(path: str, index: int) -> str | None:
+    """The ``FILE.mcap`` whose file ``index`` :func:`rotated_path` names ``path`` (``path`` itself for 0); None when
+    ``path`` is not so named (a part renamed by hand)."""
+    if index == 0:
+        return path
+    tail = f".{index}.mcap"
+    return path[: -len(tail)] + ".mcap" if path.endswith(tail) and len(path) > len(tail) else None
+
+
+def rotated_paths_after(base: str, index: int) -> list[str]:
+    """The rotated files of the recording ``base`` (``FILE.mcap``) that exist after file ``index``, in order, up to
+    the first missing one."""
+    found: list[str] = []
+    while os.path.isfile(rotated_path(base, index + 1 + len(found))):
+        found.append(rotated_path(base, index + 1 + len(found)))
+    return found
 
 
 def free_recording_path(path: str) -> str:

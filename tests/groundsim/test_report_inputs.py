@@ -62,7 +62,15 @@ def _input(k: int) -> dict:
 
 def _recording(path: str, *, truth: list, truncated: str | None, inputs: list) -> SimpleNamespace:
     return SimpleNamespace(
-        path=path, inputs=inputs, truth=truth, truncated=truncated, frames={}, metadata={}, statuses=[]
+        path=path,
+        name=path,
+        files=[path],
+        inputs=inputs,
+        truth=truth,
+        truncated=truncated,
+        frames={},
+        metadata={},
+        statuses=[],
     )
 
 
@@ -90,7 +98,7 @@ def cut_truth_flight(monkeypatch, tmp_path):
     )
     # the error plot is where a cut truth shows (numpy's warning came from its scale); the trajectory is not drawn
     monkeypatch.setattr(plots, "plot_trajectory", lambda path, run, title: path)
-    return argparse.Namespace(mcap="flight.mcap", truth="sim.mcap", out=str(tmp_path / "report"), config=None)
+    return argparse.Namespace(mcap=["flight.mcap"], truth="sim.mcap", out=str(tmp_path / "report"), config=None)
 
 
 def test_a_cut_truth_is_said_once_marked_in_the_summary_and_no_numpy_warning_reaches_the_user(cut_truth_flight, capsys):

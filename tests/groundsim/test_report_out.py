@@ -63,7 +63,16 @@ def test_a_truth_file_that_is_no_recording_is_named_as_truth_the_simulators(tmp_
 
     def load(path):  # the flight a daemon recording with frames; --truth read for real
         return (
-            SimpleNamespace(inputs=[{}], truncated=None, truth=[], metadata={}, statuses=[], path=str(flight))
+            SimpleNamespace(
+                inputs=[{}],
+                truncated=None,
+                truth=[],
+                metadata={},
+                statuses=[],
+                path=str(flight),
+                name=str(flight),
+                files=[str(flight)],
+            )
             if str(path) == str(flight)
             else real(path)
         )
