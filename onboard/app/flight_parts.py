@@ -4,7 +4,7 @@ parts of one recording, each once, in order, without a gap.
 
 One recording is told by its metadata's ``recording_id`` (the recorder writes the same random id in every file).
 Files of an older recorder have none; they are checked on what they have: the same vehicle, recorder and
-configuration, each file opened (``started_utc``) after the one before, and its first frame after the one before's
+configuration, each file opened (``started_utc``) no earlier than the one before, and its first frame after that one's
 last on the vehicle's boot clock.  Another flight of the same daemon with the same configuration passes that only
 when its files fall in order after the first flight's, which a recording id rules out.  Pure: metadata and frame
 times in, the refusal's words out (the caller raises them)."""
@@ -63,10 +63,10 @@ def _other_recording(part: FilePart, first: FilePart, before: FilePart) -> str |
         if part.metadata.get(name) != first.metadata.get(name):
             return f"{part.path}: of another recording than {first.path} (its metadata {name} differs)"
     t, t_before = _started(part), _started(before)
-    if t is not None and t_before is not None and t <= t_before:
+    if t is not None and t_before is not None and t < t_before:
         return (
-            f"{part.path}: of another recording than {before.path} (opened at {part.metadata['started_utc']}, not "
-            f"after it: {before.metadata['started_utc']})"
+            f"{part.path}: of another recording than {before.path} (opened at {part.metadata['started_utc']}, before "
+            f"it: {before.metadata['started_utc']})"
         )
     if part.first_frame_us is not None and before.last_frame_us is not None:
         if part.first_frame_us <= before.last_frame_us:

@@ -217,7 +217,7 @@ def _part(index: int, started: str, first_us: int | None = None, last_us: int | 
         ),
         pytest.param(
             [_part(0, "2026-01-01T00:10:00"), _part(1, "2026-01-01T00:00:00")],
-            "f.1.mcap: of another recording than f.mcap (opened at 2026-01-01T00:00:00, not after it: "
+            "f.1.mcap: of another recording than f.mcap (opened at 2026-01-01T00:00:00, before it: "
             "2026-01-01T00:10:00)",
             id="old-files-opened-before",
         ),
