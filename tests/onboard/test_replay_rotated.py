@@ -68,7 +68,7 @@ def rotated(tmp_path_factory) -> tuple[list[str], list[dict]]:
 @pytest.fixture(scope="module")
 def other(tmp_path_factory) -> list[str]:
     """Another recording of the same configuration and scene (a second flight of the same daemon)."""
-    files, _ = _record(tmp_path_factory.mktemp("other") / "flight.mcap", 12)
+    files, _ = _record(tmp_path_factory.mktemp("other") / "flight.mcap", 30)  # 10 MB: 3 files unless the writer lags
     assert len(files) >= 2, files
     return files
 
