@@ -93,7 +93,16 @@ def test_a_full_disk_while_the_plots_are_saved_is_one_line_naming_out(tmp_path, 
     from groundsim.app import report
 
     flight = tmp_path / "flight.mcap"
-    rec = SimpleNamespace(inputs=[{}], truncated=None, truth=[], metadata={}, statuses=[], path=str(flight))
+    rec = SimpleNamespace(
+        inputs=[{}],
+        truncated=None,
+        truth=[],
+        metadata={},
+        statuses=[],
+        path=str(flight),
+        name=str(flight),
+        files=[str(flight)],
+    )
     result = SimpleNamespace(tracks=[], frames_fed=1, wall_s=0.1, frames_missing=0, frames_refused=0)
     monkeypatch.setattr(replay_module, "load_recording", lambda path: rec)
     monkeypatch.setattr(replay_module, "config_of", lambda rec, path: None)
