@@ -53,7 +53,9 @@ Frame K is taken ``(K - 1) / fps`` seconds after the first, so the tracks are pr
 the daemon drops (over more missing frames than a track coasts, 45, every track is lost); ``--fps`` (or the video's or ``seqinfo.ini``'s rate) sets that time.
 
 Frames must be at least 16 x 16 pixels (the chain's smallest) and of one size: a folder or a video whose frame
-size changes is refused at the first frame that differs.  A video that decodes with errors (damage the decoder
+size changes is refused at the first frame that differs.  A folder's frame file that does not decode (cut short,
+damaged) is skipped, its number a gap as a missing file's, with a warning for the first and the summary line
+counting them all; a folder none of whose frames decodes is refused.  A video that decodes with errors (damage the decoder
 concealed, or a frame it cannot decode: the frames after that one are not read, so that no later frame number
 shifts) or to fewer frames than its container declares (a file cut short) is tracked as far as it decodes, with
 one warning saying how far; one whose first frame cannot be decoded is refused.
@@ -473,12 +475,21 @@ def _main(argv: Sequence[str] | None) -> int:
         if out is not None:
             out.discard()
     converted = f"from {' and '.join(sorted(src.converted_from))}; " if src.converted_from else ""
+    if src.unreadable:
+        bad = src.unreadable
+        converted += f"{len(bad)} unreadable skipped, frame{'s' if len(bad) > 1 else ''} {_numbers(bad)}; "
     print(
         f"{src.path}: {done} frames of {size} ({converted}{src.kind}, {src.fps:g} frames/s) -> {len(ids)} object ids "
         f"confirmed, {len(written)} written, {lines} {'boxes' if args.format == 'anti-uav' else 'lines'} in "
         f"{args.out} ({wall:.1f} s, {done / max(wall, 1e-9):.0f} frames/s)"
     )
     return EXIT_OK
+
+
+def _numbers(unreadable: list[tuple[int, str]], most: int = 5) -> str:
+    """The frame numbers of ``unreadable`` frames for the summary line: the first ``most``, then how many more."""
+    shown = ", ".join(str(n) for n, _ in unreadable[:most])
+    return shown + (f" and {len(unreadable) - most} more" if len(unreadable) > most else "")
 
 
 def _long_input(frames: int, fps: float) -> bool:

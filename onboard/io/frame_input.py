@@ -70,7 +70,8 @@ class FrameSource:
     files, in frame order; empty for a video) and ``frames``: the iterator of ``(MOT frame number, name,
     pixels)`` -- the name the file's path (a video's: ``PATH frame K``), the pixels 2-D uint8 or uint16, in the
     encoding asked for.  ``converted_from`` fills as ``frames`` is read: the layouts (``colour``,
-    ``colour+alpha``, ``grey+alpha``) of the frames turned to grey."""
+    ``colour+alpha``, ``grey+alpha``) of the frames turned to grey; ``unreadable`` too: a folder's frame files that
+    did not decode, each ``(MOT frame number, the reason)``, skipped as a gap in the numbering."""
 
     path: Path
     kind: str
@@ -79,6 +80,7 @@ class FrameSource:
     frames: Iterator[tuple[int, str, np.ndarray]]
     converted_from: set[str] = field(default_factory=set)
     files: list[Path] = field(default_factory=list)
+    unreadable: list[tuple[int, str]] = field(default_factory=list)
 
 
 def _frame_files(folder: Path) -> list[Path]:
@@ -321,11 +323,23 @@ def _read_image(path: Path) -> tuple[np.ndarray, str | None]:
 
 
 def _folder_frames(
-    files: list[Path], numbers: list[int], encoding: str, converted_from: set[str]
+    files: list[Path], numbers: list[int], encoding: str, converted_from: set[str], unreadable: list[tuple[int, str]]
 ) -> Iterator[tuple[int, str, np.ndarray]]:
+    """The frames of ``files``.  A file that does not decode (a frame cut short by a copy, a damaged sector) is
+    skipped, its number left as a gap as a missing file's is, and said once (a WARNING for the first; ``unreadable``
+    keeps them all for the summary): one bad file among thousands no longer cost the whole run.  A folder none of
+    whose files decodes is refused, naming the first (and no warning comes before that one line)."""
     first: tuple[tuple[int, ...], np.dtype, Path] | None = None
     for number, path in zip(numbers, files):
-        px, layout = _read_image(path)
+        try:
+            px, layout = _read_image(path)
+        except InputError as exc:
+            unreadable.append((number, str(exc)))
+            if first is not None and len(unreadable) == 1:
+                _warn_unreadable(unreadable[0])
+            continue
+        if first is None and unreadable:  # the frames before the first that decodes were unreadable
+            _warn_unreadable(unreadable[0])
         if layout is not None:
             converted_from.add(layout)
         if first is None:
@@ -341,6 +355,14 @@ def _folder_frames(
                 f"{8 * first[1].itemsize}-bit: give --encoding mono8 or mono16 to convert"
             )
         yield number, str(path), _convert(px, encoding, str(path))
+    if first is None and unreadable:
+        raise InputError(
+            f"{files[0].parent}: none of its {len(files)} frame files decodes; the first: {unreadable[0][1]}"
+        )
+
+
+def _warn_unreadable(first: tuple[int, str]) -> None:
+    log.warning("%s; skipped, frame number %d left as a gap (the summary counts any more)", first[1], first[0])
 
 
 def _av_reason(exc: Exception) -> str:
@@ -464,6 +486,7 @@ def open_frames(input_path: str, encoding: str = "auto", fps: float | None = Non
             seq_rate, seq_length = _seqinfo(*described) if described is not None else (None, None)
             rate = fps if fps is not None else seq_rate if seq_rate is not None else DEFAULT_FOLDER_FPS
             converted_from: set[str] = set()
+            unreadable: list[tuple[int, str]] = []
             files, numbers = _numbered(path, files)
             if seq_length is not None and (numbers[-1] != seq_length or len(numbers) != seq_length):
                 log.warning(
@@ -477,7 +500,7 @@ def open_frames(input_path: str, encoding: str = "auto", fps: float | None = Non
                     if numbers[-1] > seq_length
                     else "",
                 )
-            frames = _folder_frames(files, numbers, encoding, converted_from)
-            return FrameSource(path, "folder", rate, len(files), frames, converted_from, files)
+            frames = _folder_frames(files, numbers, encoding, converted_from, unreadable)
+            return FrameSource(path, "folder", rate, len(files), frames, converted_from, files, unreadable)
     video_fps, total, decoded = _video_frames(path, encoding)
     return FrameSource(path, "video", video_fps if fps is None else fps, total, decoded)

@@ -7,6 +7,7 @@ The output is replaced only when the run ends (or is interrupted): a bad frame o
 from __future__ import annotations
 
 import errno
+import logging
 import math
 import os
 import stat
@@ -154,15 +155,16 @@ def test_encoding_is_taken_from_the_pngs_or_converted(tmp_path):
     assert src.fps == 30.0 and open_frames(str(seq), fps=9.0).fps == 9.0
 
 
-@pytest.mark.parametrize("case", ["missing", "unreadable", "mixed_size", "mixed_depth", "empty"])
+@pytest.mark.parametrize("case", ["missing", "none_decodes", "mixed_size", "mixed_depth", "empty"])
 def test_bad_input_is_one_line_naming_the_file_and_exit_2(tmp_path, capsys, case):
     seq = tmp_path / "seq"
     seq.mkdir()
     for k in range(3):
         cv2.imwrite(str(seq / f"{k:03d}.png"), _mono8(k))
     bad = seq / "001.png"
-    if case == "unreadable":
-        bad.write_bytes(b"\x89PNG\r\n\x1a\n not really")
+    if case == "none_decodes":
+        for p in seq.iterdir():
+            p.write_bytes(b"\x89PNG\r\n\x1a\n not really")
     elif case == "mixed_size":
         cv2.imwrite(str(bad), _mono8(1)[:-8])
     elif case == "mixed_depth":
@@ -174,26 +176,34 @@ def test_bad_input_is_one_line_naming_the_file_and_exit_2(tmp_path, capsys, case
     code = main([str(target), "--out", str(tmp_path / "t.txt"), "--quiet"])
     err = capsys.readouterr().err.strip()
     assert code == EXIT_INPUT and len(err.splitlines()) == 1
-    named = {"missing": str(target), "empty": str(seq)}.get(case, str(bad))
-    assert err.startswith(named), err
+    named = {"missing": str(target), "empty": str(seq), "none_decodes": f"{seq}: none of its 3 frame files"}
+    assert err.startswith(named.get(case, str(bad))), err
 
 
-def test_a_corrupt_png_is_one_line_on_fd_2_with_the_decoders_words(tmp_path, capfd):
+def test_a_corrupt_png_is_skipped_as_a_gap_in_one_warning_with_the_decoders_words(tmp_path, capfd, caplog):
     """libpng prints its error on file descriptor 2 itself, past ``sys.stderr`` (capsys does not see it): the
-    decoder's words go into the tool's one line instead of a line of their own before it."""
+    decoder's words go into the tool's one warning instead of a line of their own before it.  The frame is skipped,
+    its number a gap (one bad file among thousands ended the whole run in an error, nothing written), and the
+    summary counts it."""
     seq = tmp_path / "seq"
     seq.mkdir()
-    for k in range(3):
+    for k in range(8):
         cv2.imwrite(str(seq / f"{k:03d}.png"), _mono8(k))
-    bad = seq / "001.png"
-    data = bytearray(bad.read_bytes())
-    idat = data.index(b"IDAT") + 4  # the compressed pixels: a valid header, then a broken zlib stream
-    data[idat + 8 : idat + 24] = bytes(range(16))
-    bad.write_bytes(bytes(data))
-    code = main([str(seq), "--out", str(tmp_path / "t.txt"), "--quiet"])
-    err = capfd.readouterr().err
-    assert code == EXIT_INPUT and len(err.splitlines()) == 1, err
-    assert err.startswith(f"{bad}: cannot read this frame") and "libpng" in err, err
+    for name in ("001.png", "005.png"):
+        data = bytearray((seq / name).read_bytes())
+        idat = data.index(b"IDAT") + 4  # the compressed pixels: a valid header, then a broken zlib stream
+        data[idat + 8 : idat + 24] = bytes(range(16))
+        (seq / name).write_bytes(bytes(data))
+    out = tmp_path / "t.txt"
+    code = main([str(seq), "--out", str(out), "--quiet"])
+    said = capfd.readouterr()
+    assert code == 0 and said.err == "", said.err  # libpng's own line too went into the warning
+    (warned,) = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert warned.startswith(f"{seq / '001.png'}: cannot read this frame") and "libpng" in warned, warned
+    assert warned.endswith("skipped, frame number 2 left as a gap (the summary counts any more)"), warned
+    assert "6 frames of" in said.out and "2 unreadable skipped, frames 2, 6;" in said.out, said.out
+    src = open_frames(str(seq))
+    assert [n for n, _, _ in src.frames] == [1, 3, 4, 5, 7, 8] and [n for n, _ in src.unreadable] == [2, 6]
 
 
 # --------------------------------------------------------------------------- the output: replaced only on success
@@ -254,14 +264,14 @@ def test_a_write_error_is_one_line_and_leaves_the_output_as_it_was(tmp_path, cap
 def test_a_bad_frame_mid_input_leaves_the_output_as_it_was(tmp_path, capsys, existed):
     seq = _small_seq(tmp_path / "seq")
     bad = seq / "003.png"
-    bad.write_bytes(b"\x89PNG\r\n\x1a\n truncated")  # after three good frames
+    cv2.imwrite(str(bad), _mono8(3)[:-8])  # after three good frames, one of another size: refused
     out = tmp_path / "t.txt"
     if existed:
         out.write_text("previous\n")
     code = main([str(seq), "--out", str(out), "--quiet"])
     err = capsys.readouterr().err
     kept = f"{out} is as it was" if existed else f"{out} was not created"
-    assert code == EXIT_INPUT and err.startswith(f"{bad}: cannot read") and err.endswith(f"; {kept}\n"), err
+    assert code == EXIT_INPUT and err.startswith(f"{bad}: frame of") and err.endswith(f"; {kept}\n"), err
     assert (out.read_text() == "previous\n") if existed else not out.exists()
     assert _temporary_files(tmp_path) == []
 
