@@ -591,7 +591,7 @@ class MavlinkLink:
             if len(data) > MAX_DATAGRAM_PARSE_BYTES:
                 self._counters.count("mavlink_datagram_too_large", f"{len(data)} bytes from {addr}")
                 return 0
-            fast = None if self._signing.secret_key else decode_telemetry(data)  # 50 + 25 Hz: see mavlink_fast
+            fast = None if self._signing.secret_key else decode_telemetry(data)  # 100 + 25 Hz: see mavlink_fast
             if fast is not None:
                 self._dispatch(fast, "", addr, now)
                 return 1
