@@ -15,7 +15,7 @@ import datetime
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
-__all__ = ["FilePart", "file_index", "parts_problem"]
+__all__ = ["FilePart", "file_index", "index_of", "parts_problem"]
 
 #: the metadata fields an older recorder's files (without a ``recording_id``) must agree on to be one recording's
 SAME_IN_EVERY_FILE = ("vehicle", "recorder", "config_yaml")
@@ -37,16 +37,26 @@ def file_index(part: FilePart) -> int | str:
     if not part.metadata:
         return f"{part.path}: no irtrack metadata: not a file of a recording (python -m onboard --record)"
     text = part.metadata.get("file_index", "0")
-    if not text.isdigit():
+    index = index_of(text)
+    if index is None:
         return f"{part.path}: metadata file_index {text!r} is not a file number"
-    return int(text)
+    return index
+
+
+def index_of(text: str) -> int | None:
+    """A metadata ``file_index`` as the recorder writes it (ASCII digits) read as a number, else None.  Not
+    ``str.isdigit`` alone: it holds for a superscript two, which ``int`` cannot read, and for other scripts' digits."""
+    return int(text) if text.isascii() and text.isdigit() else None
 
 
 def _started(part: FilePart) -> datetime.datetime | None:
+    """When the file was opened; a time without a zone is taken as UTC, what the field's name says (compared with
+    the recorder's own, which says +00:00, it would raise TypeError)."""
     try:
-        return datetime.datetime.fromisoformat(part.metadata["started_utc"])
+        t = datetime.datetime.fromisoformat(part.metadata["started_utc"])
     except (KeyError, TypeError, ValueError):
         return None
+    return t if t.tzinfo is not None else t.replace(tzinfo=datetime.UTC)
 
 
 def _other_recording(part: FilePart, first: FilePart, before: FilePart) -> str | None:

@@ -358,12 +358,13 @@ def rotated_part_note(rec: Recording) -> str | None:
     the daemon's ``FILE.N.mcap``), else None.  The daemon's pipeline went on from the earlier files' frames with their
     tracks, ids and frame count; replay starts it afresh at this file's first frame.  When file 0 is beside it, the
     line says to give it first."""
+    from onboard.app.flight_parts import index_of
     from onboard.io.record_files import rotation_base
 
-    index = rec.metadata.get("file_index", "0")
-    if not index.isdigit() or int(index) == 0:
+    index = index_of(rec.metadata.get("file_index", "0"))
+    if not index:
         return None
-    base = rotation_base(rec.path, int(index))
+    base = rotation_base(rec.path, index)
     beside = (
         f"; {base} and the files after it are beside it: give them first, in order, to replay the flight"
         if base is not None and os.path.isfile(base)
@@ -382,12 +383,12 @@ def more_files_note(rec: Recording, command: str) -> str | None:
     given (``FILE.N.mcap`` after it), naming them and the ``command`` line that gives the whole flight; else None.
     They are not read by themselves: the file named is the file replayed (quick; a first file's ``--compare``
     holds alone), and a flight of twelve files is the user's to ask for."""
+    from onboard.app.flight_parts import index_of
     from onboard.io.record_files import rotated_path, rotated_paths_after, rotation_base
 
-    index = rec.metadata.get("file_index", "0")
-    if not index.isdigit():
+    first = index_of(rec.metadata.get("file_index", "0"))
+    if first is None:
         return None
-    first = int(index)
     base = rotation_base(rec.path, first)
     if base is None:
         return None

@@ -251,3 +251,26 @@ def _part(index: int, started: str, first_us: int | None = None, last_us: int | 
 )
 def test_parts_are_one_recordings_each_once_in_order(parts, problem):
     assert parts_problem(parts) == problem
+
+
+@pytest.mark.parametrize("index", ["\u00b2", "\u0662", "-1", ""])
+def test_a_file_index_that_is_no_ascii_number_is_refused_in_words_not_a_traceback(index):
+    """str.isdigit() holds for a superscript two, which int() cannot read (a ValueError out of the check, and out of
+    the notes of a single file's replay); an Arabic-Indic two int() reads as 2, a file number no recorder writes."""
+    from onboard.app.replay import Recording, more_files_note, rotated_part_note
+
+    parts = [_part(0, "x", recording_id="a"), _part(1, "x", recording_id="a", file_index=index)]
+    assert parts_problem(parts) == f"f.1.mcap: metadata file_index {index!r} is not a file number"
+    rec = Recording("f.1.mcap", {**META, "file_index": index}, {}, [], [], [], None, None, None, {})
+    assert rotated_part_note(rec) is None and more_files_note(rec, "python -m onboard.replay") is None
+
+
+def test_an_older_files_start_time_without_a_zone_is_compared_as_utc_not_a_type_error():
+    """The recorder writes started_utc with +00:00; a file whose metadata has none (edited, or another writer's) was
+    compared with an aware time: TypeError, a traceback instead of the check's line."""
+    opened_before = [_part(0, "2026-01-01T00:10:00+00:00"), _part(1, "2026-01-01T00:00:00")]
+    assert parts_problem(opened_before) == (
+        "f.1.mcap: of another recording than f.mcap (opened at 2026-01-01T00:00:00, before it: "
+        "2026-01-01T00:10:00+00:00)"
+    )
+    assert parts_problem([_part(0, "2026-01-01T00:00:00"), _part(1, "2026-01-01T00:10:00+00:00")]) is None
