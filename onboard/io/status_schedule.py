@@ -43,9 +43,10 @@ def advance_due_s(due_s: float, every_s: float, now_s: float) -> float:
     return nxt if nxt > now_s else now_s + every_s
 
 
-#: links with a schedule at once, the least recently added forgotten first.  :meth:`StatusSchedules.keep` cuts the
-#: table to the links the adapter has (its endpoints, and on ``udpin`` its peers, bounded there) at every tick; this
-#: bounds what settings from other senders (a flood of addresses, each setting an interval) can add in between
+#: links with a schedule at once.  :meth:`StatusSchedules.keep` cuts the table to the links the adapter has (its
+#: endpoints, and on ``udpin`` its peers, bounded there) at every tick; this bounds what settings from other senders
+#: (a flood of addresses, each setting an interval) can add in between, and those are forgotten first, the least
+#: recently added of them first: a flood does not take the settings of the links there are
 MAX_LINKS = 64
 
 
@@ -91,6 +92,7 @@ class StatusSchedules:
         self.default_interval_s = dict(default_interval_s)
         self.max_links = max_links
         self._links: OrderedDict[Hashable, _LinkSchedule] = OrderedDict()
+        self._alive: set[Hashable] = set()  # the links the last :meth:`keep` was given
 
     def __contains__(self, msg_id: object) -> bool:
         """Whether ``msg_id`` is a message scheduled here."""
@@ -114,7 +116,7 @@ class StatusSchedules:
 
     def keep(self, links: Iterable[Hashable]) -> None:
         """Forget every link but ``links`` (the ones there are now), with its settings (class docstring)."""
-        alive = set(links)
+        alive = self._alive = set(links)
         for link in [k for k in self._links if k not in alive]:
             del self._links[link]
 
@@ -159,5 +161,6 @@ class StatusSchedules:
         if sched is None:
             sched = self._links[link] = _LinkSchedule()
             while len(self._links) > self.max_links:
-                self._links.popitem(last=False)
+                gone = [k for k in self._links if k not in self._alive][:1] or [next(iter(self._links))]
+                del self._links[gone[0]]
         return sched

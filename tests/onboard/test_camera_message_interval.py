@@ -191,3 +191,17 @@ def test_the_schedule_table_is_bounded_whatever_sets_an_interval():
     assert len(proto.status()["link_intervals"]) == MAX_LINKS
     proto.tick(0.1, None, [LINK_A])
     assert proto.status()["link_intervals"] == []
+
+
+def test_a_flood_of_settings_between_two_ticks_does_not_evict_the_links_there_are():
+    """The table's bound forgot the least recently added link first: a link there is, set long ago, went before the
+    flood's addresses that the next tick drops anyway (GcsLink.poll takes up to 100 commands an endpoint a turn)."""
+    from onboard.io.status_schedule import MAX_LINKS
+
+    proto = _proto(image_status_hz=10.0)
+    proto.handle(_on(LINK_A, cp.MAV_CMD_SET_MESSAGE_INTERVAL, 275, -1), 0.0, 0)
+    assert _statuses_per_link(proto, 0.0, 1.0, [LINK_A, LINK_B]) == {LINK_A: 0, LINK_B: 10}
+    for k in range(MAX_LINKS + 1):  # in one turn of the main loop, from addresses that are no peer
+        proto.handle(_on((0, ("10.1.0.1", 1000 + k)), cp.MAV_CMD_SET_MESSAGE_INTERVAL, 275, -1), 1.0, 0)
+    assert _statuses_per_link(proto, 1.0, 1.0, [LINK_A, LINK_B]) == {LINK_A: 0, LINK_B: 10}
+    assert proto.message_interval_us(275, LINK_A) == -1
