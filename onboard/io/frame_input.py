@@ -60,7 +60,7 @@ ENCODINGS = ("auto", "mono8", "mono16")
 
 def _natural_key(name: str) -> list:
     """Sort key of a file name with its digit runs compared by value (``2.png`` before ``10.png``)."""
-    return [int(part) if part.isdigit() else part.lower() for part in re.split(r"(\d+)", name)]
+    return [int(part) if part.isdecimal() else part.lower() for part in re.split(r"(\d+)", name)]
 
 
 @dataclass

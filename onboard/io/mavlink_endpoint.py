@@ -78,7 +78,7 @@ def _parse_serial(rest: str, original: str, field: str) -> MavlinkEndpoint:
         raise ConfigError(f"{field}: serial needs a device path like /dev/ttyS0[:BAUD], got {original!r}")
     baud = DEFAULT_SERIAL_BAUD
     if m["baud"] is not None:
-        if not m["baud"].isdigit() or int(m["baud"]) <= 0:
+        if not (m["baud"].isascii() and m["baud"].isdigit()) or int(m["baud"]) <= 0:
             raise ConfigError(f"{field}: serial baud must be a positive integer, got {m['baud']!r} in {original!r}")
         baud = int(m["baud"])
     return MavlinkEndpoint("serial", m["dev"], baud)

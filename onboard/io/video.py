@@ -600,7 +600,7 @@ class _UdpTsSink(_UdpSink):
 def parse_destination(text: str, field: str = "video.destination") -> tuple[str, int]:
     """``HOST:PORT`` -> (host, port); InputError naming ``field``."""
     host, sep, port = str(text).rpartition(":")
-    if not sep or not host or not port.isdigit() or not 1 <= int(port) <= 65535:
+    if not sep or not host or not (port.isascii() and port.isdigit()) or not 1 <= int(port) <= 65535:
         raise InputError(f"{field}: expected HOST:PORT with PORT in 1..65535, got {text!r}")
     return host, int(port)
 

@@ -229,7 +229,7 @@ class ZenohConfig:
                             ep,
                         )
                     port = hostport.rsplit(":", 1)[1] if ":" in hostport else ""
-                    if not port.isdigit() or int(port) > 65535:
+                    if not (port.isascii() and port.isdigit()) or int(port) > 65535:
                         raise Invalid(f"{name}[{i}]", f"a {proto} endpoint {proto}/HOST:PORT with PORT in 0..65535", ep)
 
 

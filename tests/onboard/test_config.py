@@ -524,6 +524,15 @@ def test_a_cross_field_error_names_the_override_beside_the_file(tmp_path):
     assert str(ei.value).startswith(f"{q}: mavlink.heartbeat_timeout_s: expected a timeout >")
 
 
+@pytest.mark.parametrize("port", ["7447\u00b2", "\u0667\u0664\u0664\u0667"])
+def test_a_zenoh_port_of_other_digits_than_ascii_is_refused_naming_the_field(port):
+    """A superscript two passes str.isdigit and made int() raise ValueError (a traceback, not the one line); Arabic-
+    Indic digits were read as a port."""
+    with pytest.raises(OnboardConfigError) as ei:
+        load_config(None, {"zenoh.listen": ([f"tcp/127.0.0.1:{port}"], "--zenoh-listen")}, environ={})
+    assert str(ei.value).startswith("--zenoh-listen: zenoh.listen[0]:")
+
+
 def test_cli_error_names_the_option():
     with pytest.raises(OnboardConfigError) as ei:
         load_config(None, {"zenoh.listen": (["nope"], "--zenoh-listen")}, environ={})

@@ -29,7 +29,17 @@ def test_parse_endpoint_forms(text, expected):
 
 @pytest.mark.parametrize(
     "text",
-    ["", "udpin:14540", "udpin:host:0", "udpin:host:70000", "tcp:host", "ftp:x:1", "serial:/dev/ttyS1:fast", "serial:"],
+    [
+        "",
+        "udpin:14540",
+        "udpin:host:0",
+        "udpin:host:70000",
+        "tcp:host",
+        "ftp:x:1",
+        "serial:/dev/ttyS1:fast",
+        "serial:",
+        "serial:/dev/ttyS1:5\u00b2",  # a superscript two: str.isdigit holds, int() raised ValueError
+    ],
 )
 def test_parse_endpoint_rejects_with_field_name(text):
     with pytest.raises(ConfigError, match="--mavlink"):

@@ -463,3 +463,11 @@ def test_a_box_that_is_not_finite_is_not_written():
         "7,2,11.000,21.000,3.000,3.000,4.000,-1,-1,-1\n",
     ]
     assert track_video.mot_rows(7, upd, box_px=6.0) == ["7,1,9.500,19.500,6.000,6.000,4.000,-1,-1,-1\n"]
+
+
+def test_a_frame_name_with_a_digit_int_cannot_read_sorts_without_an_error():
+    """``_natural_key`` compares digit runs by value: a run of digits ``int`` cannot read (a superscript two between
+    two numbers, which str.isdigit holds) raised ValueError before any frame was read."""
+    from onboard.io.frame_input import _natural_key
+
+    assert sorted(["1\u00b22.png", "10.png", "2.png"], key=_natural_key) == ["1\u00b22.png", "2.png", "10.png"]

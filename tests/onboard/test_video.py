@@ -691,6 +691,8 @@ def test_the_streamer_needs_the_sections_destination():
         ConfigError, match=r"destination: expected HOST:PORT with PORT in 1..65535, got '127.0.0.1:70000'"
     ):
         VideoConfig(destination="127.0.0.1:70000")  # the section checks the port's range too (--check refuses it)
+    with pytest.raises(ConfigError, match="destination: expected HOST:PORT"):
+        VideoConfig(destination="127.0.0.1:560\u00b2")  # a superscript two: str.isdigit holds, int() raised ValueError
 
 
 @settings(max_examples=200, deadline=None)
