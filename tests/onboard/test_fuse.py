@@ -412,13 +412,10 @@ def test_the_fusion_dials_no_peer_that_gossip_names_unless_told():
     assert autoconnect("--zenoh-gossip-autoconnect") == (True, ["router", "peer"])
 
 
-@pytest.mark.integration
-@pytest.mark.parametrize("gossip", [False, True])
-def test_the_fuse_process_hears_a_routers_other_peers_only_when_told_to_dial_them(gossip):
+def _fusion_beside_a_routers_peer(gossip: bool) -> None:
     """A router with gossip on (deploy/zenoh-router.json5's), a daemon-like peer that listens on loopback and dials
-    nothing, and the fusion connected to the router as a peer: by default it never dials the daemon (nothing
-    arrives: a zenoh router does not relay between peers), with --zenoh-gossip-autoconnect it does.  A third peer
-    that dials what gossip names is the control: the daemon's tracks reach it."""
+    nothing, and the fusion connected to the router as a peer, with --zenoh-gossip-autoconnect if ``gossip``: what
+    the test below asserts, asserted here (each case has its own router, peers and fusion process)."""
     import time
 
     import zenoh
@@ -467,6 +464,32 @@ def test_the_fuse_process_hears_a_routers_other_peers_only_when_told_to_dial_the
         if proc is not None:
             terminate(proc, STOP_TIMEOUT_S)
     assert proc.returncode == 0, proc.stderr.read().decode() if proc.stderr else ""
+
+
+GOSSIP_CASES = (False, True)
+
+
+@pytest.fixture(scope="module")
+def gossip_cases():
+    """Both cases of the test below at once, each with its own router, ports and fusion process: one after the
+    other they took 4.3-5.1 s each, mostly the fusion's start and the 2 s of frames, which need little CPU (60 small
+    messages a case).  Per case a future of :func:`_fusion_beside_a_routers_peer` (``result()`` raises what the
+    case raised)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    pool = ThreadPoolExecutor(len(GOSSIP_CASES))
+    yield {gossip: pool.submit(_fusion_beside_a_routers_peer, gossip) for gossip in GOSSIP_CASES}
+    pool.shutdown(wait=True)  # each case closes its sessions and ends its process whatever happens
+
+
+@pytest.mark.integration
+@pytest.mark.parametrize("gossip", GOSSIP_CASES)
+def test_the_fuse_process_hears_a_routers_other_peers_only_when_told_to_dial_them(gossip, gossip_cases):
+    """A router with gossip on (deploy/zenoh-router.json5's), a daemon-like peer that listens on loopback and dials
+    nothing, and the fusion connected to the router as a peer: by default it never dials the daemon (nothing
+    arrives: a zenoh router does not relay between peers), with --zenoh-gossip-autoconnect it does.  A third peer
+    that dials what gossip names is the control: the daemon's tracks reach it."""
+    gossip_cases[gossip].result()
 
 
 def test_the_arrival_clock_takes_the_shortest_latency_and_forgets_it_on_a_reboot():
