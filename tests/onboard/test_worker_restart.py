@@ -320,6 +320,9 @@ def test_a_hung_worker_is_killed_and_replaced_before_its_pipe_can_block_the_fram
         hung_pid = pe.pid
         assert hung_pid is not None
         os.kill(hung_pid, signal.SIGSTOP)
+        # the daemon's own wait from here: a stopped worker answers no row, so each waited its whole 0.05 s for
+        # nothing (1.36 s of the test over the 26 rows until HUNG_S)
+        pe.result_wait_s = OnboardConfig().estimator.result_wait_ms / 1000.0
         i = HUNG_FRAMES_BEFORE_STOP
         t0 = time.monotonic()
         silent = []
@@ -328,6 +331,7 @@ def test_a_hung_worker_is_killed_and_replaced_before_its_pipe_can_block_the_fram
             silent.append(pe.silent_s)  # what the watchdog names as overload's cause meanwhile
             _add(pe, obs, K, i)
             i += 1
+        pe.result_wait_s = 0.05  # long enough for the replacement below to be taken by a row
         # up to date when stopped; from the first row it did not answer, the clock runs
         assert silent[0] == 0.0 and silent[1] == pytest.approx(0.2) and max(silent) >= pe.HUNG_S - 0.2
         assert counter["estimator_hung"] == 1 and time.monotonic() - t0 < 15.0  # ~HUNG_S of fake clock, not a block
