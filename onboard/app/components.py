@@ -21,7 +21,8 @@ def make_camera_protocol(
 ) -> CameraProtocol:
     """The :class:`~onboard.io.camera_protocol.CameraProtocol` of ``config`` (gcs, output rates, camera), counting
     the commands it refuses in ``counter`` (the daemon's)."""
-    from onboard.io.camera_protocol import CameraIdentity, CameraProtocol, VideoStream, video_stream_type
+    from onboard.io.camera_description import CameraIdentity, VideoStream, video_stream_type
+    from onboard.io.camera_protocol import CameraProtocol
 
     g, o, v = config.gcs, config.output, config.video
     identity = CameraIdentity.from_intrinsics(

@@ -87,18 +87,9 @@ What a ground station sees (MAVLink common.xml; QGroundControl's src/Camera disc
   read it already).  A first transmission (``confirmation`` 0) with the same parameters is a new command (the
   operator clicked again), and so is a retransmission once a newer command of that id came from the requester
   (the older one's ACK would be read as the newer one's answer).
-* CAMERA_INFORMATION: vendor/model, ``firmware_version``, focal length (mm) = ``fx_px x pixel
-  pitch``, sensor size (mm) = resolution x pixel pitch, resolution (px), flags HAS_VIDEO_STREAM (when
-  a stream is configured) | HAS_TRACKING_POINT | HAS_TRACKING_RECTANGLE | HAS_TRACKING_GEO_STATUS,
-  ``camera_device_id`` 0 (we are the camera component), ``gimbal_device_id`` the gimbal the camera is
-  on (:attr:`CameraProtocol.gimbal_device_id`: the gimbal device's component id, or 1-6 for one its
-  manager speaks for; 0 for a fixed mount or while the gimbal is not yet known).
-* VIDEO_STREAM_INFORMATION / STATUS: stream 1 of 1, type by ``video.transport``
-  (:func:`video_stream_type`: ``rtp`` -> RTPUDP 1, ``mpegts`` -> MPEG_TS 3; common.xml, "URI gives
-  the port number" for both), ``uri`` the UDP port the ground station listens on (QGC's VideoManager
-  opens ``udp://0.0.0.0:<uri>`` as RTP H.264 for RTPUDP, ``mpegts://0.0.0.0:<uri>`` for MPEG_TS),
-  flags RUNNING (not THERMAL: :class:`VideoStream`), frame rate, bitrate, resolution, ``hfov`` (deg) = ``2 atan(width / 2 fx)``,
-  encoding H264.
+* CAMERA_INFORMATION and VIDEO_STREAM_INFORMATION / STATUS: their fields, and the sensor and stream they describe
+  (:class:`~onboard.io.camera_description.CameraIdentity`, :class:`~onboard.io.camera_description.VideoStream`), are
+  in :mod:`onboard.io.camera_description`.
 * CAMERA_TRACKING_IMAGE_STATUS (#275) and CAMERA_TRACKING_GEO_STATUS (#276) while tracking, on each link at the
   intervals it set by SET_MESSAGE_INTERVAL (defaults ``output.tracking_*_status_hz``; what a link is, and that one
   gone forgets its setting: :class:`~onboard.io.status_schedule.StatusSchedules`); once to every link when the
@@ -121,11 +112,12 @@ from collections.abc import Callable, Hashable, Iterable, Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any, NamedTuple
 
-from onboard.core.checks import is_nonnegative_number, is_positive_number, require_each
+from onboard.core.checks import is_nonnegative_number, require_each
 from onboard.core.counters import RejectCounter
 from onboard.core.errors import InputError
 from onboard.core.selection import TrackRequest, TrackResult
 from onboard.core.track import Track
+from onboard.io.camera_description import CameraIdentity, VideoStream, camera_information, int_in
 from onboard.io.mavlink_wire import (
     CameraTrackingGeoStatus,
     CameraTrackingImageStatus,
@@ -144,15 +136,11 @@ from onboard.io.status_schedule import (
 )
 
 __all__ = [
-    "CameraIdentity",
-    "VideoStream",
-    "video_stream_type",
     "CameraCommand",
     "Outgoing",
     "TrackRequest",
     "TrackResult",
     "CameraProtocol",
-    "camera_information",
 ]
 
 # common.xml numbers (a test checks them against pymavlink's dialect; the core does not import it)
@@ -192,16 +180,6 @@ MSG_VIDEO_STREAM_STATUS = 270
 MSG_TRACKING_IMAGE_STATUS = 275
 MSG_TRACKING_GEO_STATUS = 276
 
-CAMERA_CAP_FLAGS_HAS_VIDEO_STREAM = 256
-CAMERA_CAP_FLAGS_HAS_TRACKING_POINT = 512
-CAMERA_CAP_FLAGS_HAS_TRACKING_RECTANGLE = 1024
-CAMERA_CAP_FLAGS_HAS_TRACKING_GEO_STATUS = 2048
-VIDEO_STREAM_TYPE_RTPUDP = 1
-VIDEO_STREAM_TYPE_MPEG_TS = 3
-_STREAM_TYPE_OF_TRANSPORT = {"rtp": VIDEO_STREAM_TYPE_RTPUDP, "mpegts": VIDEO_STREAM_TYPE_MPEG_TS}
-VIDEO_STREAM_STATUS_FLAGS_RUNNING = 1
-VIDEO_STREAM_STATUS_FLAGS_THERMAL = 2
-VIDEO_STREAM_ENCODING_H264 = 1
 CAMERA_MODE_VIDEO = 1
 CAMERA_TRACKING_MODE_NONE = 0
 CAMERA_TRACKING_MODE_POINT = 1
@@ -211,11 +189,6 @@ STORAGE_STATUS_NOT_SUPPORTED = 3
 #: COMMAND_ACK.progress when it is not known
 PROGRESS_UNKNOWN = 255
 
-TRACKING_FLAGS = (
-    CAMERA_CAP_FLAGS_HAS_TRACKING_POINT
-    | CAMERA_CAP_FLAGS_HAS_TRACKING_RECTANGLE
-    | CAMERA_CAP_FLAGS_HAS_TRACKING_GEO_STATUS
-)
 #: bytes of text in one STATUSTEXT
 STATUSTEXT_MAX_CHARS = 50
 #: a refusal's STATUSTEXT is sent in at most this many chunks (module docstring): 199 bytes of text, room for every
@@ -260,124 +233,6 @@ _REFUSAL_REASONS = {
 }
 
 
-def _finite_positive(name: str, v) -> float:
-    if not is_positive_number(v):
-        raise InputError(f"{name} must be a finite number > 0, got {v!r}")
-    return float(v)
-
-
-def _int_in(name: str, v, lo: int, hi: int) -> int:
-    if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
-        raise InputError(f"{name} must be an integer in {lo}..{hi}, got {v!r}")
-    return v
-
-
-@dataclass(frozen=True)
-class CameraIdentity:
-    """What CAMERA_INFORMATION says about the sensor.  Lengths in mm, resolution in px.
-
-    ``firmware_version``: uint32 as common.xml lays it out, (dev << 24) | (patch << 16) | (minor << 8) | major;
-    0 when unknown (what :meth:`from_intrinsics` sends).
-    """
-
-    vendor_name: str
-    model_name: str
-    firmware_version: int
-    focal_length_mm: float
-    sensor_size_h_mm: float
-    sensor_size_v_mm: float
-    resolution_h_px: int
-    resolution_v_px: int
-
-    def __post_init__(self) -> None:
-        for name in ("vendor_name", "model_name"):
-            v = getattr(self, name)
-            if not isinstance(v, str) or not v or len(v.encode()) > 32:
-                raise InputError(f"CameraIdentity.{name} must be 1..32 bytes of text, got {v!r}")
-        _int_in("CameraIdentity.firmware_version", self.firmware_version, 0, 2**32 - 1)
-        for name in ("focal_length_mm", "sensor_size_h_mm", "sensor_size_v_mm"):
-            object.__setattr__(self, name, _finite_positive(f"CameraIdentity.{name}", getattr(self, name)))
-        _int_in("CameraIdentity.resolution_h_px", self.resolution_h_px, 1, 65535)
-        _int_in("CameraIdentity.resolution_v_px", self.resolution_v_px, 1, 65535)
-
-    @classmethod
-    def from_intrinsics(
-        cls,
-        fx_px: float,
-        width_px: int,
-        height_px: int,
-        pixel_pitch_um: float,
-        vendor_name: str = "irtrack",
-        model_name: str = "IR tracker",
-        firmware_version: int = 0,
-    ) -> CameraIdentity:
-        """Focal length and sensor size from the pinhole model and the detector's pixel pitch."""
-        pitch_mm = _finite_positive("pixel_pitch_um", pixel_pitch_um) / 1000.0
-        return cls(
-            vendor_name,
-            model_name,
-            firmware_version,
-            float(fx_px) * pitch_mm,
-            width_px * pitch_mm,
-            height_px * pitch_mm,
-            int(width_px),
-            int(height_px),
-        )
-
-
-def video_stream_type(transport: str) -> int:
-    """VIDEO_STREAM_TYPE of a ``video.transport``: ``rtp`` -> RTPUDP (1), ``mpegts`` -> MPEG_TS (3)."""
-    try:
-        return _STREAM_TYPE_OF_TRANSPORT[transport]
-    except (KeyError, TypeError):
-        raise InputError(
-            f"video.transport: expected one of {', '.join(_STREAM_TYPE_OF_TRANSPORT)}, got {transport!r}"
-        ) from None
-
-
-@dataclass(frozen=True)
-class VideoStream:
-    """The one video stream we advertise (VIDEO_STREAM_INFORMATION).
-
-    ``stream_type``: VIDEO_STREAM_TYPE (RTPUDP 1, MPEG_TS 3); ``uri``: what the ground station opens
-    (for UDP types the port number it listens on, e.g. ``"5600"``); ``hfov_deg`` horizontal field of
-    view; ``thermal`` sets VIDEO_STREAM_STATUS_FLAGS_THERMAL.
-
-    ``thermal`` is off by default although the stream is thermal imaging: QGroundControl sets up its main video
-    only from a stream without that flag (``VideoManager::autoStreamConfigured``) and leaves a thermal stream out
-    of its stream list, to overlay it on a main one; flagged, the camera's only stream would open no video at all.
-    """
-
-    stream_type: int
-    uri: str
-    framerate_hz: float
-    bitrate_bps: int
-    resolution_h_px: int
-    resolution_v_px: int
-    hfov_deg: float
-    name: str = "IR"
-    thermal: bool = False
-    encoding: int = VIDEO_STREAM_ENCODING_H264
-
-    def __post_init__(self) -> None:
-        if self.stream_type not in (VIDEO_STREAM_TYPE_RTPUDP, VIDEO_STREAM_TYPE_MPEG_TS):
-            raise InputError(f"VideoStream.stream_type must be RTPUDP (1) or MPEG_TS (3), got {self.stream_type!r}")
-        if not isinstance(self.uri, str) or not self.uri or len(self.uri.encode()) > 160:
-            raise InputError(f"VideoStream.uri must be 1..160 bytes of text, got {self.uri!r}")
-        object.__setattr__(self, "framerate_hz", _finite_positive("VideoStream.framerate_hz", self.framerate_hz))
-        _int_in("VideoStream.bitrate_bps", self.bitrate_bps, 0, 2**32 - 1)
-        _int_in("VideoStream.resolution_h_px", self.resolution_h_px, 1, 65535)
-        _int_in("VideoStream.resolution_v_px", self.resolution_v_px, 1, 65535)
-        hfov = _finite_positive("VideoStream.hfov_deg", self.hfov_deg)
-        if hfov >= 360.0:
-            raise InputError(f"VideoStream.hfov_deg must be below 360, got {hfov}")
-        object.__setattr__(self, "hfov_deg", hfov)
-
-    @property
-    def flags(self) -> int:
-        return VIDEO_STREAM_STATUS_FLAGS_RUNNING | (VIDEO_STREAM_STATUS_FLAGS_THERMAL if self.thermal else 0)
-
-
 @dataclass(frozen=True)
 class CameraCommand:
     """A COMMAND_LONG / COMMAND_INT addressed to the camera (``params``: its 7 parameters as floats;
@@ -402,7 +257,7 @@ class CameraCommand:
         if len(self.params) != 7:
             raise InputError(f"CameraCommand.params must be 7 numbers, got {len(self.params)}")
         object.__setattr__(self, "params", tuple(float(p) for p in self.params))
-        _int_in("CameraCommand.confirmation", self.confirmation, 0, 255)
+        int_in("CameraCommand.confirmation", self.confirmation, 0, 255)
         try:
             hash(self.via)
         except TypeError:
@@ -435,36 +290,6 @@ class _Requester(NamedTuple):
     @property
     def ids(self) -> tuple[int, int]:
         return (self.system, self.component)
-
-
-def camera_information(
-    identity: CameraIdentity, time_boot_ms: int, has_video: bool, gimbal_device_id: int = 0
-) -> dict[str, Any]:
-    """CAMERA_INFORMATION (#259) fields (``gimbal_device_id``: the camera's gimbal, 0 = none)."""
-    flags = TRACKING_FLAGS | (CAMERA_CAP_FLAGS_HAS_VIDEO_STREAM if has_video else 0)
-    return dict(
-        time_boot_ms=int(time_boot_ms) % 2**32,
-        vendor_name=_pad(identity.vendor_name, 32),
-        model_name=_pad(identity.model_name, 32),
-        firmware_version=identity.firmware_version,
-        focal_length=identity.focal_length_mm,
-        sensor_size_h=identity.sensor_size_h_mm,
-        sensor_size_v=identity.sensor_size_v_mm,
-        resolution_h=identity.resolution_h_px,
-        resolution_v=identity.resolution_v_px,
-        lens_id=0,
-        flags=flags,
-        cam_definition_version=0,
-        cam_definition_uri=b"",
-        gimbal_device_id=_int_in("gimbal_device_id", gimbal_device_id, 0, 255),
-        camera_device_id=0,
-    )
-
-
-def _pad(text: str, n: int) -> list[int]:
-    """A uint8_t[n] char array (pymavlink packs lists of ints for those fields)."""
-    b = text.encode()[:n]
-    return list(b) + [0] * (n - len(b))
 
 
 @dataclass
@@ -531,8 +356,8 @@ class CameraProtocol:
     _selected_track_id: int | None = field(init=False, default=None)
 
     def __post_init__(self) -> None:
-        _int_in("CameraProtocol.component_id", self.component_id, 1, 255)
-        _int_in("CameraProtocol.gimbal_device_id", self.gimbal_device_id, 0, 255)
+        int_in("CameraProtocol.component_id", self.component_id, 1, 255)
+        int_in("CameraProtocol.gimbal_device_id", self.gimbal_device_id, 0, 255)
         require_each(
             self,
             ("image_status_hz", "geo_status_hz"),

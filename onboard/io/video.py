@@ -33,7 +33,7 @@ encoder is behind (counted as ``dropped``); the thread maps, overlays, encodes a
   latency than RTP (p99 ~90-100 ms).
 
 (:mod:`onboard.io.camera_protocol` advertises the stream; the mapping is
-:func:`onboard.io.camera_protocol.video_stream_type`.)
+:func:`onboard.io.camera_description.video_stream_type`.)
 """
 
 from __future__ import annotations

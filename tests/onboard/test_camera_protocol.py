@@ -12,17 +12,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from pymavlink.dialects.v20 import common as mav
 
+import onboard.io.camera_description as cd
 import onboard.io.camera_protocol as cp
 from onboard.core.counters import RejectCounter
 from onboard.core.errors import InputError
 from onboard.core.track import Track
-from onboard.io.camera_protocol import (
-    CameraCommand,
-    CameraIdentity,
-    CameraProtocol,
-    TrackResult,
-    VideoStream,
-)
+from onboard.io.camera_description import CameraIdentity, VideoStream
+from onboard.io.camera_protocol import CameraCommand, CameraProtocol, TrackResult
 from tests.fakes import FakeClock, positioned_track, tracking_track
 
 W, H = 640, 512
@@ -38,7 +34,7 @@ def _identity() -> CameraIdentity:
 
 def _stream() -> VideoStream:
     return VideoStream(
-        cp.VIDEO_STREAM_TYPE_MPEG_TS, "5600", 30.0, 2_000_000, W, H, math.degrees(2 * math.atan(W / (2 * FX_PX)))
+        cd.VIDEO_STREAM_TYPE_MPEG_TS, "5600", 30.0, 2_000_000, W, H, math.degrees(2 * math.atan(W / (2 * FX_PX)))
     )
 
 
@@ -76,9 +72,10 @@ def _ack(out):
 
 
 def test_constants_are_the_dialects():
-    for name in dir(cp):
-        if name.isupper() and hasattr(mav, name):
-            assert getattr(cp, name) == getattr(mav, name), name
+    for mod in (cp, cd):
+        for name in dir(mod):
+            if name.isupper() and hasattr(mav, name):
+                assert getattr(mod, name) == getattr(mav, name), f"{mod.__name__}.{name}"
     assert cp.MSG_CAMERA_INFORMATION == mav.MAVLINK_MSG_ID_CAMERA_INFORMATION
     assert cp.MSG_VIDEO_STREAM_INFORMATION == mav.MAVLINK_MSG_ID_VIDEO_STREAM_INFORMATION
     assert cp.MSG_TRACKING_IMAGE_STATUS == mav.MAVLINK_MSG_ID_CAMERA_TRACKING_IMAGE_STATUS
@@ -206,7 +203,7 @@ def test_camera_information_names_the_gimbal_it_is_told(gimbal_device_id):
     out, _ = proto.handle(_cmd(cp.MAV_CMD_REQUEST_MESSAGE, 259), 0.0, 0)
     info = [o.fields for o in out if o.msg == "camera_information"][0]
     assert info["gimbal_device_id"] == gimbal_device_id and info["camera_device_id"] == 0
-    assert cp.camera_information(_identity(), 0, True)["gimbal_device_id"] == 0  # none unless told
+    assert cd.camera_information(_identity(), 0, True)["gimbal_device_id"] == 0  # none unless told
     with pytest.raises(InputError, match="gimbal_device_id"):
         _proto(gimbal_device_id=256)
 

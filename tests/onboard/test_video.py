@@ -679,7 +679,7 @@ def test_camera_advertises_the_stream_on_the_destination_port():
 
 def test_transport_is_checked_by_name():
     from onboard.app.config import build_config
-    from onboard.io.camera_protocol import video_stream_type
+    from onboard.io.camera_description import video_stream_type
 
     with pytest.raises(Exception, match="video.transport"):
         build_config({"video": {"destination": "10.0.0.5:5600", "transport": "rtsp"}})
