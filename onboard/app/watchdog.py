@@ -481,7 +481,7 @@ class Watchdog:
 
     def autopilot_duplicate(self, now_s: float, senders) -> None:
         """The second senders of the autopilot's identity heard lately (a list of
-        :class:`~onboard.io.mavlink_link.DuplicateSender`, from the link; empty: none): warned once, naming each."""
+        :class:`~onboard.io.mavlink_peer.DuplicateSender`, from the link; empty: none): warned once, naming each."""
         self._hold_each(
             "autopilot_duplicate",
             [

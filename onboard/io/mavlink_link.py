@@ -36,11 +36,11 @@ module decides what to do with them (MAVLink common, v2 framing):
 
 Out: ``HEARTBEAT`` at 1 Hz as ``MAV_TYPE_ONBOARD_CONTROLLER`` / ``MAV_AUTOPILOT_INVALID`` from
 component 191 (``MAV_COMP_ID_ONBOARD_COMPUTER``) with the autopilot's system id;
-``COMMAND_LONG(MAV_CMD_SET_MESSAGE_INTERVAL, param1 = message id, param2 = interval us)``, one at a
-time (an ACK does not say which message it is for), retried every ``command_retry_s`` until
-``COMMAND_ACK`` ACCEPTED, and re-sent after a link loss or an autopilot reboot; the velocity setpoints and FOLLOW_TARGET of guidance when
-asked.  The tracking statuses (#275, #276) go to ground stations (:mod:`onboard.io.gcs_link`); the
-``send_tracking_*`` methods here serve a deployment whose ground station shares the autopilot's link.
+``COMMAND_LONG(MAV_CMD_SET_MESSAGE_INTERVAL)`` for the telemetry rates, one at a time until ACCEPTED
+(:mod:`onboard.io.mavlink_rates`), and re-sent after a link loss or an autopilot reboot; the velocity setpoints and
+FOLLOW_TARGET of guidance when asked.  The tracking statuses (#275, #276) go to ground stations
+(:mod:`onboard.io.gcs_link`); the ``send_tracking_*`` methods here serve a deployment whose ground station shares
+the autopilot's link.
 
 Input (hostile links): UDP links use a socket of our own and parse **each datagram
 alone** with a fresh parser, so a truncated or garbage datagram costs only itself
@@ -73,22 +73,8 @@ Output goes only to the locked autopilot's address (``udpin``: the address its h
 or the fixed ``udpout`` address, plus ``extra_destinations``: a sender of garbage or of another
 system id never becomes a recipient.  Identity and MAVLink 2 signing: see :class:`MavlinkConfig`.
 
-One autopilot, one address (``udpin``): the autopilot is the first address its system/component heartbeats from.
-A heartbeat of that system/component from another address while the followed one is alive (its newest heartbeat
-within ``heartbeat_timeout_s``, the window the link calls it connected by) is a second sender: two vehicles with
-one system id on the port (PX4 and ArduPilot both default to 1), or one autopilot over two routes.  Mixed, the
-pose follows whichever spoke last (two clocks apart: every line of sight wrong) and the replies flip between them;
-so everything from that address is refused instead: counted ``autopilot_duplicate`` (its
-heartbeats; WARNING the first time, naming both addresses), ``autopilot_duplicate_refused`` (anything else, DEBUG),
-and listed by :meth:`MavlinkLink.duplicate_senders` for the watchdog's ``autopilot_duplicate``.  The autopilot
-component's own messages from an address its heartbeats do not come from are not used either
-(``autopilot_other_address``, DEBUG: a second sender before its first heartbeat, or a moved autopilot's first
-second); other components of its system (a gimbal on a socket of its own) are taken from any address.  An
-autopilot that moved (its old address silent for ``heartbeat_timeout_s``, so the link is lost, then heartbeats
-from a new one) is followed there (``autopilot_address_changed``): a move costs up to ``heartbeat_timeout_s`` of
-telemetry, a shorter window would hand the link to a second vehicle over a radio fade of the first.  A second
-sender heartbeating after the first fell silent that long is followed the same way (nothing tells it from a moved
-autopilot then; the count's log line says it was heard as a second sender).
+One autopilot, one address (``udpin``): a second sender of its system/component is refused, a moved autopilot
+followed (:mod:`onboard.io.mavlink_peer`).
 
 Link state: ``waiting`` (no autopilot heartbeat yet) -> ``connected`` -> ``lost`` (no heartbeat for
 ``heartbeat_timeout_s``) -> ``connected`` ...  :meth:`MavlinkLink.poll` never blocks and never
@@ -122,6 +108,8 @@ from onboard.core.stream_rate import StreamRate, StreamRates
 from onboard.core.utc_clock import UtcClock
 from onboard.io.mavlink_config import MavlinkConfig, parse_connection
 from onboard.io.mavlink_fast import decode_telemetry
+from onboard.io.mavlink_peer import AutopilotAddress, DuplicateSender
+from onboard.io.mavlink_rates import RateRequests
 from onboard.io.mavlink_transport import (
     MAX_DATAGRAM_PARSE_BYTES,
     DialFailed,
@@ -145,7 +133,6 @@ from onboard.io.mavlink_wire import (
     SystemTime,
     Timesync,
     connect,
-    set_message_interval_message,
 )
 
 __all__ = [
@@ -156,7 +143,6 @@ __all__ = [
     "MavlinkConfig",
     "MAX_OUTSTANDING_TIMESYNC",
     "LinkStatus",
-    "DuplicateSender",
     "MavlinkLink",
     "UdpTransport",
     "new_parser",
@@ -190,12 +176,6 @@ _NOT_AUTOPILOT_TYPES = frozenset(
 #: used only from the autopilot component; another component's is counted (``mavlink_foreign_component``).
 #: GIMBAL_DEVICE_ATTITUDE_STATUS and TIMESYNC are judged by their own rules (module docstring)
 _AUTOPILOT_ONLY = frozenset({"ATTITUDE_QUATERNION", "GLOBAL_POSITION_INT", "GPS_RAW_INT", "SYSTEM_TIME", "COMMAND_ACK"})
-_RESULT_NAMES = {
-    v: k[len("MAV_RESULT_") :]
-    for k, v in vars(mavlink2).items()
-    if k.startswith("MAV_RESULT_") and k != "MAV_RESULT_ENUM_END"
-}
-
 
 # --------------------------------------------------------------------------- constants and status
 
@@ -205,8 +185,6 @@ MAX_OUTSTANDING_TIMESYNC = 16
 #: how often (s) a ``tcp:`` connection under way is looked at: a main loop that sleeps on the link's descriptor has
 #: none to sleep on until the autopilot answers
 DIAL_POLL_S = 0.02
-#: second senders of the autopilot's identity remembered (the newest ones): their messages are refused
-MAX_DUPLICATE_SENDERS = 8
 #: a GPS_RAW_INT newer than this (s) says whether the receiver has a fix when SYSTEM_TIME would seed UTC
 UTC_FIX_FRESH_S = 5.0
 #: a TIMESYNC answer whose clock puts the autopilot's newest time_boot_ms further than this from where that
@@ -244,27 +222,6 @@ class LinkStatus:
     messages_refused: int = 0
     #: per requested stream (by message name): msg_id, requested_hz, measured_hz over the last seconds (None at first)
     streams: dict[str, dict[str, Any]] = field(default_factory=dict)
-
-
-@dataclass(frozen=True)
-class DuplicateSender:
-    """A second sender of the followed autopilot's identity on a ``udpin`` link (module docstring): ``other``
-    heartbeats as system ``sysid`` component ``compid`` while ``followed`` (the address the link follows) is alive.
-    ``heard_s``: its newest heartbeat, on the link's clock."""
-
-    sysid: int
-    compid: int
-    followed: tuple[str, int]
-    other: tuple[str, int]
-    heard_s: float
-
-
-@dataclass
-class _Inflight:
-    msg_id: int
-    interval_us: int
-    sent_s: float
-    attempts: int
 
 
 # --------------------------------------------------------------------------- wire: parser and transports
@@ -362,9 +319,10 @@ class MavlinkLink:
         ]
         if self.gimballed:
             rates.append((MSG_ID_GIMBAL_DEVICE_ATTITUDE_STATUS, config.gimbal_rate_hz))
-        self.rate_plan: dict[int, int] = {mid: int(round(1e6 / hz)) for mid, hz in rates}
+        rate_plan = {mid: int(round(1e6 / hz)) for mid, hz in rates}
         #: what each requested stream delivers (status ``link.streams``; the watchdog's ``stream_rate_low``)
         self.stream_rates = StreamRates({mid: (_STREAM_NAMES[mid], float(hz)) for mid, hz in rates})
+        self._rates = RateRequests(config, rate_plan, self.stream_rates, counters, self._send)
 
         self._signing = new_signing(signing_key, signing_link_id)
         self._signed_without_key_seen = False  # mavlink_signed_without_key: counted once per link
@@ -373,8 +331,7 @@ class MavlinkLink:
         self._stream_parser = new_parser(self._signing)  # serial/TCP: one parser per stream (new on each open)
         self._mav = new_parser(self._signing, _Writer(self), self.config.autopilot_sysid or 1, self.config.component_id)
         self._candidates: dict[int, list] = {}  # unpinned lock: sysid -> [first_s, last_s, heartbeats]
-        #: udpin: addresses that heartbeat as the autopilot while the followed one is alive -> their newest one
-        self._duplicates: OrderedDict[tuple[str, int], DuplicateSender] = OrderedDict()
+        self._address = AutopilotAddress(config, counters)  # udpin: the autopilot's address, second senders
         self._next_open_s = -math.inf
         #: why the connection could not be opened the last time it was tried (None: open, or not tried yet)
         self.open_error: str | None = None
@@ -389,10 +346,6 @@ class MavlinkLink:
         self._last_hb_rx_s: float | None = None
         self._last_hb_tx_s = -math.inf
         self._last_ts_tx_s = -math.inf
-        self._rate_queue: list[int] = []
-        self._inflight: _Inflight | None = None
-        self.rates_confirmed: set[int] = set()
-        self.rates_refused: dict[int, int] = {}
         self._ts_outstanding: OrderedDict[int, None] = OrderedDict()
         self._boot_seen: tuple[int, int] | None = None  # (our clock_ns, time_boot_us) of the newest attitude
         self._seen_reboots = pose_buffer.reboots
@@ -461,10 +414,7 @@ class MavlinkLink:
         self.state = LINK_LOST
         self.link_losses += 1
         self.autopilot_mode = None
-        self._inflight = None
-        self._rate_queue.clear()
-        self.rates_confirmed.clear()
-        self.stream_rates.reset()
+        self._rates.forget()
         self._ts_outstanding.clear()
 
     def _lost(self, now: float) -> None:
@@ -515,10 +465,7 @@ class MavlinkLink:
         due = [self._last_hb_tx_s + cfg.heartbeat_interval_s] if self.autopilot_sysid is not None else []
         if self.state == LINK_CONNECTED and self._last_hb_rx_s is not None:  # connected: a heartbeat came
             due += [self._last_hb_rx_s + cfg.heartbeat_timeout_s, self._last_ts_tx_s + cfg.timesync_interval_s]
-            if self._inflight is not None:
-                due.append(self._inflight.sent_s + cfg.command_retry_s)
-            elif self._rate_queue:
-                due.append(now)
+            due += self._rates.due_s(now)
         return max(min(due, default=math.inf) - now, 0.0)
 
     @property
@@ -582,7 +529,7 @@ class MavlinkLink:
             self._lost(now)
             return handled
         if self.state == LINK_CONNECTED:
-            self._service_commands(now)
+            self._rates.service(now, self.autopilot_sysid)
         return handled
 
     def _feed(self, data: bytes, addr, now: float) -> int:
@@ -665,7 +612,7 @@ class MavlinkLink:
         if src_sys != self.autopilot_sysid:
             self._foreign(mtype, src_sys, src_comp)
             return
-        if addr is not None and self._not_from_peer(mtype, src_comp, addr):
+        if addr is not None and self._address.refuses(self._transport, mtype, src_comp, addr, self.autopilot_sysid):
             return
         from_autopilot = src_comp == self.config.autopilot_compid
         if not from_autopilot and mtype in _AUTOPILOT_ONLY:
@@ -713,7 +660,7 @@ class MavlinkLink:
                 return
             self.utc_clock.add_system_time(st.time_boot_us, st.time_unix_us)
         elif mtype == "COMMAND_ACK" and from_autopilot:
-            self._on_ack(msg, now)
+            self._rates.on_ack(msg, now, self.autopilot_sysid)
 
     def _settled(self, sysid: int, now: float) -> bool:
         """Unpinned identity rule (see :class:`MavlinkConfig`): True when ``sysid`` may be locked."""
@@ -751,51 +698,10 @@ class MavlinkLink:
         last = self._last_hb_rx_s
         return last is not None and now - last <= self.config.heartbeat_timeout_s
 
-    def _duplicate(self, sysid: int, compid: int, followed, other, now: float) -> None:
-        """A heartbeat of the followed identity from ``other`` while ``followed`` is alive: a second sender (module
-        docstring), remembered so that all it sends is refused; counted, at WARNING the first time it is heard."""
-        new = other not in self._duplicates
-        self._duplicates[other] = DuplicateSender(sysid, compid, followed, other, now)
-        self._duplicates.move_to_end(other)
-        while len(self._duplicates) > MAX_DUPLICATE_SENDERS:
-            self._duplicates.popitem(last=False)
-        self._counters.count(
-            "autopilot_duplicate",
-            f"{other[0]}:{other[1]} heartbeats as autopilot {sysid}/{compid} too, which {followed[0]}:{followed[1]} "
-            "is: everything it sends is refused (autopilot_duplicate_refused); give each vehicle its own MAV_SYS_ID "
-            "or its own port",
-            level=logging.WARNING if new else logging.DEBUG,
-        )
-
-    def _not_from_peer(self, mtype: str, src_comp: int, addr) -> bool:
-        """Count and return True for a message of the autopilot's system that a ``udpin`` link does not take from
-        ``addr``: anything from a second sender of its identity, and the autopilot component's own messages from
-        an address its heartbeats do not come from (another component, a gimbal on its own socket, may have one)."""
-        t = self._transport
-        if not isinstance(t, UdpTransport) or t.kind != "udpin" or t.peer is None or addr == t.peer:
-            return False
-        if addr in self._duplicates:
-            self._counters.count(
-                "autopilot_duplicate_refused",
-                f"{mtype} from {addr[0]}:{addr[1]}, a second sender of autopilot {self.autopilot_sysid}'s identity",
-                level=logging.DEBUG,
-            )
-            return True
-        if src_comp != self.config.autopilot_compid:
-            return False
-        self._counters.count(
-            "autopilot_other_address",
-            f"{mtype} of autopilot {self.autopilot_sysid}/{src_comp} from {addr[0]}:{addr[1]}; its heartbeats come "
-            f"from {t.peer[0]}:{t.peer[1]}",
-            level=logging.DEBUG,
-        )
-        return True
-
     def duplicate_senders(self) -> list[DuplicateSender]:
         """The second senders of the autopilot's identity heard within ``heartbeat_timeout_s`` (the watchdog's
         ``autopilot_duplicate``); empty when none."""
-        now = self._now()
-        return [d for d in self._duplicates.values() if now - d.heard_s <= self.config.heartbeat_timeout_s]
+        return self._address.senders(self._now())
 
     def _on_heartbeat(self, msg, src_sys: int, src_comp: int, now: float, addr=None) -> None:
         if msg.autopilot == mavlink2.MAV_AUTOPILOT_INVALID or msg.type in _NOT_AUTOPILOT_TYPES:
@@ -819,20 +725,8 @@ class MavlinkLink:
             self._set_autopilot(src_sys)
         t = self._transport
         if addr is not None and isinstance(t, UdpTransport) and t.kind == "udpin" and t.peer != addr:
-            if t.peer is not None and self._peer_alive(now):
-                self._duplicate(src_sys, src_comp, t.peer, addr, now)
+            if not self._address.heartbeat(t, src_sys, src_comp, addr, now, self._peer_alive(now)):
                 return
-            was_second = self._duplicates.pop(addr, None) is not None
-            if t.peer is not None:
-                # a second sender followed once the first fell silent may be the other vehicle, not a move: said so
-                self._counters.count(
-                    "autopilot_address_changed",
-                    f"system {src_sys}: {t.peer} -> {addr}"
-                    + (", which heartbeated as a second sender while the first was alive" if was_second else ""),
-                )
-            else:
-                log.info("autopilot %d at %s:%d: our output goes there only", src_sys, *addr)
-            t.peer = addr
         self._last_hb_rx_s = now
         # the autopilot's mode as its heartbeat says (guidance in the loop sends setpoints only in the accepting mode)
         self.autopilot_mode = (int(msg.autopilot), int(msg.base_mode), int(msg.custom_mode))
@@ -843,7 +737,7 @@ class MavlinkLink:
                 log.warning("autopilot %d back; re-requesting message rates", src_sys)
             else:
                 log.info("autopilot %d connected", src_sys)
-            self._request_rates()
+            self._rates.request()
             self._last_ts_tx_s = -math.inf
 
     def _on_gimbal(self, gim: GimbalDeviceAttitudeStatus, src_comp: int, from_autopilot: bool) -> None:
@@ -931,29 +825,6 @@ class MavlinkLink:
         off_ns = (seen[0] + tc1_ns - mid_ns) - seen[1] * 1000  # the exchange's boot time there minus the message's
         return off_ns if abs(off_ns) > TIMESYNC_BOOT_SLACK_NS else None
 
-    def _on_ack(self, msg, now: float) -> None:
-        if msg.command != mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL or self._inflight is None:
-            return
-        tgt_sys = getattr(msg, "target_system", 0)
-        tgt_comp = getattr(msg, "target_component", 0)
-        if tgt_sys not in (0, self.autopilot_sysid) or tgt_comp not in (0, self.config.component_id):
-            return  # an answer to somebody else's command
-        inf = self._inflight
-        result = msg.result
-        if result == mavlink2.MAV_RESULT_ACCEPTED:
-            self.rates_confirmed.add(inf.msg_id)
-            self.stream_rates.confirmed(inf.msg_id, now)
-            self._inflight = None
-            log.info("rate of message %d set to %d us", inf.msg_id, inf.interval_us)
-        elif result == mavlink2.MAV_RESULT_IN_PROGRESS:
-            inf.sent_s = now
-        elif result == mavlink2.MAV_RESULT_TEMPORARILY_REJECTED:
-            pass  # retried on the next timeout
-        else:
-            self.rates_refused[inf.msg_id] = result
-            self._inflight = None
-            self._counters.count("rate_request_refused", f"message {inf.msg_id}: {_RESULT_NAMES.get(result, result)}")
-
     def _check_reboot(self, now: float) -> None:
         if self._pose.reboots != self._seen_reboots:
             self._seen_reboots = self._pose.reboots
@@ -962,7 +833,7 @@ class MavlinkLink:
             self.utc_clock.reset()
             self._ts_outstanding.clear()
             if self.state == LINK_CONNECTED:
-                self._request_rates()
+                self._rates.request()
 
     # ------------------------------------------------------------------ timers and output
 
@@ -990,7 +861,7 @@ class MavlinkLink:
             )
         if self.state != LINK_CONNECTED:
             return
-        self._service_commands(now)
+        self._rates.service(now, self.autopilot_sysid)
         if now - self._last_ts_tx_s >= self.config.timesync_interval_s:
             self._last_ts_tx_s = now
             ts1 = int(self._clock_ns())
@@ -1000,38 +871,6 @@ class MavlinkLink:
             self._send(
                 "TIMESYNC", Timesync(0, ts1, self.autopilot_sysid or 0, self.config.autopilot_compid).to_message()
             )
-
-    def _request_rates(self) -> None:
-        self.rates_confirmed.clear()
-        self.stream_rates.reset()
-        self.rates_refused.clear()
-        self._inflight = None
-        self._rate_queue = list(self.rate_plan)
-
-    def _service_commands(self, now: float) -> None:
-        inf = self._inflight
-        if inf is not None:
-            if now - inf.sent_s < self.config.command_retry_s:
-                return
-            inf.attempts += 1
-            inf.sent_s = now
-            self._send_interval(inf)
-            return
-        if not self._rate_queue:
-            return
-        mid = self._rate_queue.pop(0)
-        self._inflight = _Inflight(mid, self.rate_plan[mid], now, 0)
-        self._send_interval(self._inflight)
-
-    def _send_interval(self, inf: _Inflight) -> None:
-        if self.autopilot_sysid is None:  # commands are serviced only while connected, i.e. to a locked system
-            return
-        self._send(
-            "SET_MESSAGE_INTERVAL",
-            set_message_interval_message(
-                self.autopilot_sysid, self.config.autopilot_compid, inf.msg_id, inf.interval_us, inf.attempts
-            ),
-        )
 
     # ------------------------------------------------------------------ tracking status out
 
@@ -1061,6 +900,21 @@ class MavlinkLink:
 
     # ------------------------------------------------------------------ queries
 
+    @property
+    def rate_plan(self) -> dict[int, int]:
+        """The message rates asked of the autopilot: message id -> interval us."""
+        return self._rates.rate_plan
+
+    @property
+    def rates_confirmed(self) -> set[int]:
+        """The message ids whose rate the autopilot ACCEPTED since the link connected (or it rebooted)."""
+        return self._rates.rates_confirmed
+
+    @property
+    def rates_refused(self) -> dict[int, int]:
+        """Message id -> the MAV_RESULT that refused its rate."""
+        return self._rates.rates_refused
+
     def heartbeat_age_s(self) -> float:
         """How long ago the autopilot's newest heartbeat came, s on the link's clock (inf before the first)."""
         return math.inf if self._last_hb_rx_s is None else self._now() - self._last_hb_rx_s
@@ -1076,7 +930,7 @@ class MavlinkLink:
             autopilot_sysid=self.autopilot_sysid,
             heartbeat_age_s=None if self._last_hb_rx_s is None else now - self._last_hb_rx_s,
             rates_confirmed=tuple(sorted(self.rates_confirmed)),
-            rates_pending=tuple(([self._inflight.msg_id] if self._inflight else []) + self._rate_queue),
+            rates_pending=self._rates.pending(),
             rates_refused=tuple(sorted(self.rates_refused)),
             clock_synced=self.clock_sync.synced,
             messages_rx=self.messages_rx,

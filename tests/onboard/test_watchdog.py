@@ -317,7 +317,7 @@ def test_stream_rate_low_names_the_message_and_both_rates_once(caplog):
 
 
 def test_autopilot_duplicate_names_both_addresses_and_the_id_once(caplog):
-    from onboard.io.mavlink_link import DuplicateSender
+    from onboard.io.mavlink_peer import DuplicateSender
 
     wd = _wd()
     dup = DuplicateSender(1, 1, ("10.0.0.5", 14580), ("10.0.0.6", 14580), 20.0)
