@@ -55,6 +55,15 @@ def test_an_earlier_report_is_told_by_its_summary_or_its_own_names_alone(tmp_pat
     assert holds_flight_report(tmp_path) is ours
 
 
+def _stand_in_recording(flight) -> SimpleNamespace:
+    """What the report reads of a daemon recording with one frame taken, as ``onboard.replay.load_recording`` gives
+    it, for a file ``flight`` that need not exist."""
+    path = str(flight)
+    return SimpleNamespace(
+        inputs=[{}], truncated=None, truth=[], metadata={}, statuses=[], path=path, name=path, files=[path]
+    )
+
+
 def test_a_truth_file_that_is_no_recording_is_named_as_truth_the_simulators(tmp_path, capsys, monkeypatch):
     flight = tmp_path / "flight.mcap"
     truth = tmp_path / "random.mcap"
@@ -62,20 +71,7 @@ def test_a_truth_file_that_is_no_recording_is_named_as_truth_the_simulators(tmp_
     real = replay_module.load_recording
 
     def load(path):  # the flight a daemon recording with frames; --truth read for real
-        return (
-            SimpleNamespace(
-                inputs=[{}],
-                truncated=None,
-                truth=[],
-                metadata={},
-                statuses=[],
-                path=str(flight),
-                name=str(flight),
-                files=[str(flight)],
-            )
-            if str(path) == str(flight)
-            else real(path)
-        )
+        return _stand_in_recording(flight) if str(path) == str(flight) else real(path)
 
     monkeypatch.setattr(replay_module, "load_recording", load)
     code = cli.main(["report", str(flight), "--truth", str(truth), "--out", str(tmp_path / "r")])
@@ -93,16 +89,7 @@ def test_a_full_disk_while_the_plots_are_saved_is_one_line_naming_out(tmp_path, 
     from groundsim.app import report
 
     flight = tmp_path / "flight.mcap"
-    rec = SimpleNamespace(
-        inputs=[{}],
-        truncated=None,
-        truth=[],
-        metadata={},
-        statuses=[],
-        path=str(flight),
-        name=str(flight),
-        files=[str(flight)],
-    )
+    rec = _stand_in_recording(flight)
     result = SimpleNamespace(tracks=[], frames_fed=1, wall_s=0.1, frames_missing=0, frames_refused=0)
     monkeypatch.setattr(replay_module, "load_recording", lambda path: rec)
     monkeypatch.setattr(replay_module, "config_of", lambda rec, path: None)
