@@ -7,6 +7,7 @@ elliptical warm blob point-sampled at pixel centres (frames.py convention: the c
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -26,7 +27,7 @@ from onboard.imaging import (
     detect_targets,
     preprocess_frame,
 )
-from onboard.imaging.detect import find_blobs
+from onboard.imaging.detect import Blob, find_blobs
 from onboard.imaging.preprocess import (
     MEDIAN_SORT_MAX_ELEMENTS,
     Preprocessed,
@@ -283,6 +284,68 @@ def test_find_blobs_same_in_a_small_region_as_in_the_full_frame():
     assert len(blobs_roi) == 3 and blobs_roi == blobs_full
 
 
+def _residual_with(*rects, size=64):
+    """A Preprocessed of a ``size`` x ``size`` frame, thresholds 5/5, holding rectangles
+    (x0, y0, w, h, seed) of residual 10 with one pixel of ``seed`` at the rectangle's centre."""
+    r = np.zeros((size, size), np.float32)
+    for x0, y0, w, h, seed in rects:
+        r[y0 : y0 + h, x0 : x0 + w] = 10.0
+        r[y0 + h // 2, x0 + w // 2] = seed
+    return Preprocessed(r, Region(0, 0, size, size), 1.0, 5.0, 5.0, (size, size))
+
+
+@pytest.mark.parametrize(
+    "w, h, limits, kept",
+    [
+        (1, 1, {}, False),  # area 1 < min_area_px 2
+        (1, 2, {}, True),  # area == min_area_px is kept
+        (4, 5, {"max_area_px": 20}, True),  # area == max_area_px is kept
+        (5, 5, {"max_area_px": 20}, False),
+        (1, 6, {}, True),  # aspect 6 == max_aspect_ratio
+        (1, 7, {}, False),  # a ridge line
+        (3, 8, {"max_blob_side_px": 8}, True),
+        (3, 9, {"max_blob_side_px": 8}, False),  # fits its +-8 px window whole, but is too tall
+    ],
+)
+def test_find_blobs_keeps_exactly_the_components_within_the_limits(w, h, limits, kept):
+    """Each limit at its boundary, one pixel either side: a limit ignored or off by one changes the answer."""
+    blobs = find_blobs(_residual_with((20, 20, w, h, 20.0)), ImagingParams(**limits))
+    assert blobs == ([Blob((20, 20, w, h), w * h, 20.0)] if kept else [])
+
+
+def test_find_blobs_keeps_a_blob_on_the_frames_edge_and_takes_the_strongest_seed_first():
+    """The frame's own edge does not cut a component (only a region's edge does); with room for one
+    candidate, the strongest seed's blob is the one found, wherever it sits in the frame."""
+    pre = _residual_with((0, 0, 3, 2, 12.0), (30, 40, 2, 3, 40.0), (61, 20, 3, 3, 15.0))
+    assert find_blobs(pre, ImagingParams()) == [
+        Blob((30, 40, 2, 3), 6, 40.0),
+        Blob((61, 20, 3, 3), 9, 15.0),
+        Blob((0, 0, 3, 2), 6, 12.0),
+    ]
+    assert find_blobs(pre, ImagingParams(max_candidates=1)) == [Blob((30, 40, 2, 3), 6, 40.0)]
+    # the same residual as a region of a wider frame: the region's own edges now cut the blobs on them
+    right_half = dataclasses.replace(pre, region=Region(64, 0, 128, 64), frame_shape=(64, 128))
+    assert find_blobs(right_half, ImagingParams()) == [  # cut: the one on the left edge (x 64)
+        Blob((94, 40, 2, 3), 6, 40.0),
+        Blob((125, 20, 3, 3), 9, 15.0),
+    ]
+    left_half = dataclasses.replace(pre, frame_shape=(128, 128))
+    assert find_blobs(left_half, ImagingParams()) == [  # cut: the one on the right edge (x 64)
+        Blob((30, 40, 2, 3), 6, 40.0),
+        Blob((0, 0, 3, 2), 6, 12.0),
+    ]
+    upper_half = dataclasses.replace(pre, residual=pre.residual.T.copy(), frame_shape=(128, 64))  # transposed
+    assert find_blobs(upper_half, ImagingParams()) == [  # cut: the one on the bottom edge (y 64)
+        Blob((40, 30, 3, 2), 6, 40.0),
+        Blob((0, 0, 2, 3), 6, 12.0),
+    ]
+    lower_half = dataclasses.replace(upper_half, region=Region(0, 64, 64, 128))
+    assert find_blobs(lower_half, ImagingParams()) == [  # cut: the one on the top edge (y 64)
+        Blob((40, 94, 3, 2), 6, 40.0),
+        Blob((20, 125, 3, 3), 9, 15.0),
+    ]
+
+
 @pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
 def test_tophat_is_zero_on_quantised_ramps_and_tilted_horizons(dtype):
     """The opening reproduces any monotone function of a x + b y exactly, so a gradient sky, a
@@ -457,10 +520,22 @@ def test_strongest_of_two_targets_first_and_saturation_flag():
     assert dets[1].u_px == pytest.approx(100.5, abs=0.1) and not dets[1].saturated
 
 
-def test_target_cut_by_the_border_is_flagged():
-    img = make_frame(1.0, 200.3, amp=80.0, sigma=1.5, noise=0.0)
+@pytest.mark.parametrize(
+    "u, v, sigma, touches",
+    [
+        (1.0, 200.3, 1.5, True),  # left
+        (W_PX - 1.0, 200.3, 1.5, True),  # right
+        (300.3, 1.0, 1.5, True),  # top
+        (300.3, H_PX - 1.0, 1.5, True),  # bottom
+        # the box (columns 1-7, window from column 0) is inside, the windowed centroid's +-5 px is cut
+        (4.5, 200.3, 1.0, True),
+        (10.5, 200.3, 1.0, False),
+    ],
+)
+def test_target_cut_by_the_border_is_flagged(u, v, sigma, touches):
+    img = make_frame(u, v, amp=80.0, sigma=sigma, noise=0.0)
     dets, _ = detect_targets(img, ImagingParams())
-    assert len(dets) == 1 and dets[0].touches_border
+    assert len(dets) == 1 and dets[0].touches_border == touches
 
 
 def test_detect_does_not_modify_its_input():
