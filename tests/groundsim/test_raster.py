@@ -23,6 +23,7 @@ from hypothesis import strategies as st
 
 from groundsim.world.render import IrRenderer, IrSettings, PartRaster, TargetPart, truth_pixel
 from groundsim.world.render.planck import band_radiance, grey_float_from_radiance, noise_sigma_grey
+from groundsim.world.render.raster import BOX_FRACTION
 from onboard.core.errors import InputError
 from onboard.core.frames import CameraMount, PinholeIntrinsics, camera_pose_ned, quat_from_euler, rotmat_from_quat
 
@@ -106,13 +107,25 @@ def test_target_is_drawn_where_truth_pixel_says(r16_default):
     uv = truth_pixel(INTR, CAMERA_P_NED_M, R, p_t)
     assert uv[0] > 320 and uv[1] < 256
     img = r16_default.render(CAMERA_P_NED_M, R, p_t, np.eye(3))
+    box = r16_default.last_target_box_px
     bg = r16_default.render(CAMERA_P_NED_M, R, None, None)
+    assert r16_default.last_target_box_px is None
     diff = img.astype(float) - bg
     i, j = np.unravel_index(np.argmax(diff), diff.shape)
     assert abs(j + 0.5 - uv[0]) <= 1.5 and abs(i + 0.5 - uv[1]) <= 1.5
     assert diff[i, j] > 1000  # a hot target on a cold sky is bright
     nonzero = np.argwhere(diff != 0)
     assert np.all(np.abs(nonzero[:, 1] + 0.5 - uv[0]) < 10) and np.all(np.abs(nonzero[:, 0] + 0.5 - uv[1]) < 10)
+
+    # the truth's box (x0, y0, x1, y1; ends exclusive): the pixels holding BOX_FRACTION of the peak, read off
+    # the integer frames (a pixel within 0.2 % of the threshold, 1.5 grey, may fall either side of it after rounding)
+    def extent(fraction):
+        ii, jj = np.nonzero(diff >= fraction * diff.max())
+        return jj.min(), ii.min(), jj.max() + 1, ii.max() + 1
+
+    inner, outer = extent(1.002 * BOX_FRACTION), extent(0.998 * BOX_FRACTION)
+    assert box is not None and outer[0] <= box[0] <= inner[0] and outer[1] <= box[1] <= inner[1]
+    assert inner[2] <= box[2] <= outer[2] and inner[3] <= box[3] <= outer[3], (box, inner, outer)
 
 
 # ---------------------------------------------------------------------------- centroid accuracy
@@ -411,6 +424,20 @@ def test_timing_report_and_background_reuse():
     r.render(CAMERA_P_NED_M + [0.0, 0.0, -50.0], R, p_t, np.eye(3))
     assert r.last_timing.table_rebuilt and not r.last_timing.background_reused
     assert r.last_timing.total_ms >= r.last_timing.background_ms
+
+
+@pytest.mark.parametrize("tilt_over_tol, reused", [(0.5, True), (2.0, False)])
+def test_background_is_reused_only_within_its_tilt_tolerance(tilt_over_tol, reused):
+    """A pitch change moves the third row of R_ned_from_cam by about the angle: the background is reused within
+    ``background_reuse_tol_rad`` of the one it was made for, and made afresh beyond it (as a new renderer's)."""
+    s = IrSettings(netd_k=0.0, encoding="mono16")
+    r = IrRenderer(INTR, s, seed=0)
+    r.render(CAMERA_P_NED_M, R_cam(pitch_deg=3.0), None, None)
+    R = R_cam(pitch_deg=3.0 + math.degrees(tilt_over_tol * s.background_reuse_tol_rad))
+    img = r.render(CAMERA_P_NED_M, R, None, None)
+    assert r.last_timing.background_reused == reused and not r.last_timing.table_rebuilt
+    if not reused:
+        np.testing.assert_array_equal(img, IrRenderer(INTR, s, seed=0).render(CAMERA_P_NED_M, R, None, None))
 
 
 # ---------------------------------------------------------------------------- edge cases, validation
