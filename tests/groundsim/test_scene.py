@@ -14,8 +14,8 @@ from scipy.ndimage import minimum_filter
 from groundsim.world.render import IrRenderer, IrSettings, SceneBackground
 from groundsim.world.render.clutter import point_detections
 from groundsim.world.render.planck import band_radiance
-from groundsim.world.render.raster import PyrUpImage
-from groundsim.world.render.scene import FAR_M, SceneContent, section_rng
+from groundsim.world.render.raster import BOX_FRACTION, PyrUpImage
+from groundsim.world.render.scene import FAR_M, ObjectLabel, SceneContent, _occluded_by_nearer, section_rng
 from groundsim.world.render.scene_config import CloudsConfig, SceneConfig, scene_config_from_dict
 from groundsim.world.render.settings import TargetPart
 from groundsim.world.render.textures import cloud_texture
@@ -274,6 +274,32 @@ def test_warm_is_the_sign_of_the_contrast_the_label_measures(temperature_k, warm
     x0, y0, x1, y1 = lab.box_px
     diff = fr.radiance[y0:y1, x0:x1] - fr.background.radiance[y0:y1, x0:x1]
     assert bool(diff.max() > -diff.min()) is warm  # the image agrees with the label
+    # the box (ends exclusive) is the extent of the pixels whose |signal| reaches BOX_FRACTION of the peak
+    # (0.1 % either side of the threshold for float32 rounding of the signal added to the background)
+    signal = np.abs(fr.radiance - fr.background.radiance)
+    for fraction, inside in ((1.001 * BOX_FRACTION, True), (0.999 * BOX_FRACTION, False)):
+        ii, jj = np.nonzero(signal >= fraction * signal.max())
+        extent = (jj.min(), ii.min(), jj.max() + 1, ii.max() + 1)
+        if inside:
+            assert x0 <= extent[0] and y0 <= extent[1] and extent[2] <= x1 and extent[3] <= y1, (lab.box_px, extent)
+        else:
+            assert extent[0] <= x0 and extent[1] <= y0 and x1 <= extent[2] and y1 <= extent[3], (lab.box_px, extent)
+
+
+def test_a_label_is_occluded_only_by_a_nearer_box_holding_its_centre_pixel():
+    """``_occluded_by_nearer``: the centre's pixel (floor of u, v) inside a nearer object's box (ends exclusive)."""
+
+    def lab(object_id, u, v, range_m, box=None):
+        return ObjectLabel(object_id, "target", u, v, box, "visible", 5.0 if box else 0.0, range_m)
+
+    far = lab(1, 10.9, 20.9, 500.0)  # pixel (row 20, column 10)
+    for box, occluded in (((5, 15, 11, 21), True), ((5, 15, 10, 21), False), ((5, 15, 11, 20), False)):
+        near = lab(0, 8.0, 18.0, 100.0, box)
+        out = _occluded_by_nearer((near, far))
+        assert [x.visibility for x in out] == ["visible", "occluded" if occluded else "visible"], box
+        # a box of a farther object hides nothing
+        out = _occluded_by_nearer((replace(near, range_m=900.0), far))
+        assert [x.visibility for x in out] == ["visible", "visible"]
 
 
 # ---------------------------------------------------------------------------- terrain
