@@ -187,9 +187,13 @@ def test_frame_event_frozen_step_ok():
     assert frame_event(a, a.copy(), 100.0, 3.0)[0] == "frozen"
     b = a + 5
     assert frame_event(b, a, 100.0, 3.0) == ("step", 105.0)
-    c = a.copy()
-    c[0, 0] = 101
-    assert frame_event(c, a, 100.0, 3.0)[0] == "ok"
+    assert frame_event(a + 3, a, 100.0, 3.0) == ("ok", 103.0)  # a step is a jump of more than step_lsb
+    assert frame_event(a + 4, a, 100.0, 3.0) == ("step", 104.0)
+    # one pixel changed is a new frame, on the median's sampling grid (every 8th row and column) or off it
+    for i, j in ((0, 0), (3, 5)):
+        c = a.copy()
+        c[i, j] = 101
+        assert frame_event(c, a, 100.0, 3.0)[0] == "ok"
 
 
 # ---------------------------------------------------------------- object tracker
