@@ -13,6 +13,15 @@ from hypothesis import strategies as st
 
 from onboard.core.frames import PinholeIntrinsics
 from onboard.imaging.objects import ObjectParams, ObjectTracker
+from onboard.imaging.objects_association import (
+    OWNED_PX,
+    common_shift,
+    continue_with,
+    in_own_gate,
+    owning_tracks,
+    track_gate,
+)
+from onboard.imaging.objects_model import TrackRecord
 from onboard.imaging.preprocess import ImagingParams
 
 H_PX, W_PX = 96, 128
@@ -245,3 +254,50 @@ def test_a_weak_difference_moves_a_confirmed_track_but_not_its_velocity():
         else:
             assert not np.array_equal(t.rate, rate)
             assert t.history[-1][2:] == (u, 40.0)
+
+
+# ---------------------------------------------------------------- the pure rules, on hand-made numbers
+
+
+def test_a_candidate_in_two_gates_does_not_count_towards_the_common_shift():
+    """Track 0 alone sees its candidate unambiguously; tracks 1 and 2 share one (in both gates): with one
+    unambiguous track there is no common shift, though each track has exactly one candidate in its gate."""
+    puv = np.array([[0.0, 0.0], [10.0, 0.0], [11.0, 0.0]])
+    cuv = np.array([[1.0, 0.5], [12.0, 0.5]])
+    d = np.hypot(*(cuv[None, :, :] - puv[:, None, :]).transpose(2, 0, 1))
+    gate = np.full(3, 3.0)
+    assert common_shift(puv, cuv, d, gate, [True, True, True]) is None
+    # the shared candidate moved out of track 2's gate: tracks 0 and 1 are unambiguous, their median shift
+    cuv[1] = (7.5, 0.5)
+    d = np.hypot(*(cuv[None, :, :] - puv[:, None, :]).transpose(2, 0, 1))
+    np.testing.assert_allclose(common_shift(puv, cuv, d, gate, [True, True, True]), [-0.75, 0.5])
+
+
+def test_the_gate_grows_per_coasted_frame_up_to_its_limit():
+    p = ObjectParams()
+    assert track_gate(p, 0) == p.gate_px and track_gate(p, 2) == p.gate_px + 2 * p.gate_growth_px
+    np.testing.assert_array_equal(
+        track_gate(p, np.array([0, 4, 1000])), [p.gate_px, p.gate_px + 4 * p.gate_growth_px, p.max_gate_px]
+    )
+
+
+def test_a_candidate_is_owned_within_owned_px_of_a_prediction():
+    a, b = (
+        TrackRecord(1, np.zeros(3), np.zeros(3), (0.0, 0.0), (0, 0, 1, 1)),
+        TrackRecord(2, np.zeros(3), np.zeros(3), (0.0, 0.0), (0, 0, 1, 1)),
+    )
+    held = [(a, (50.0 + 0.9 * OWNED_PX, 50.0)), (b, (50.0, 50.0 + 1.1 * OWNED_PX))]
+    assert owning_tracks(50.0, 50.0, held) == [a]
+    # within its own gate, but owned by another track's prediction
+    assert in_own_gate(50.0, 50.0, (53.0, 50.0), 4.0, [(50.0 + 1.1 * OWNED_PX, 50.0)])
+    assert not in_own_gate(50.0, 50.0, (53.0, 50.0), 4.0, [(50.0 + 0.9 * OWNED_PX, 50.0)])
+    assert not in_own_gate(50.0, 50.0, (54.5, 50.0), 4.0, [])
+
+
+def test_a_coasting_track_continued_by_a_tentative_one_adds_its_hits():
+    o = TrackRecord(7, np.zeros(3), np.zeros(3), (1.0, 2.0), (0, 1, 2, 2), hits=30, misses=5, dim_hits=4)
+    t = TrackRecord(9, np.ones(3), np.ones(3), (3.0, 4.0), (2, 3, 2, 2), hits=6, dim_hits=2, aided_run=1)
+    t.history = [(k, None, 0.0, 0.0) for k in range(10)]
+    continue_with(o, t, window=8)
+    assert (o.object_id, o.hits, o.misses, o.dim_hits, o.aided_run, o.uv) == (7, 36, 0, 6, 1, (3.0, 4.0))
+    assert o.history == t.history[-8:]
