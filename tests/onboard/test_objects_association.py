@@ -88,6 +88,24 @@ def test_two_objects_alongside_on_a_clear_sky_are_confirmed_though_they_move_ali
     assert max(first.values()) <= 14
 
 
+def test_each_track_is_confirmed_on_its_own_twelfth_measured_frame():
+    """The same two objects, the second appearing three frames after the first: each is confirmed on the frame
+    its own track has ``confirm_in_window`` (12) measured positions, 11 and 14, not when the first one is (a
+    frame's confirmation pass runs once any track is due, and then tests every tentative track on its own)."""
+    rng = np.random.default_rng(22)
+    tr = ObjectTracker(K)
+    first: dict[str, int] = {}
+    for k in range(20):
+        pts = {"a": (40.0 + 0.30 * k, 40.0)}
+        if k >= 3:
+            pts["b"] = (40.0 + 0.40 * k, 55.0)
+        out = tr.update(_frame(rng, list(pts.values())), None)
+        for name, (u, v) in pts.items():
+            if any(math.hypot(o.u_px - u, o.v_px - v) <= MATCH_PX for o in out.confirmed):
+                first.setdefault(name, k)
+    assert first == {"a": 11, "b": 14}
+
+
 @pytest.mark.parametrize("max_run, confirmed", [(1, True), (0, False)])
 def test_a_tentative_track_bridges_single_dim_frames_by_aided_detection(max_run, confirmed):
     """An object above the whole-frame threshold on two frames of three and 5 grey (under it, over the
