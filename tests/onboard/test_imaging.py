@@ -867,6 +867,11 @@ def test_seed_threshold_is_the_floor_only_where_the_background_is_quantisation_f
         if flicker:
             assert pre.threshold_high == FLICKER_FLOOR
             assert float(pre.residual.max()) <= 1.0  # one grey step of flicker at most, below the floor
+            # the seed threshold is never under the low one: a low threshold of 7 sigma lifts it off the floor
+            # (at 0.25 grey of noise: 2.3 grey, sigma 0.33)
+            lifted = preprocess_frame(img, dataclasses.replace(p, threshold_low_sigma=p.threshold_high_sigma), region)
+            assert lifted.threshold_high == max(FLICKER_FLOOR, lifted.threshold_low)
+            assert noise < 0.25 or lifted.threshold_high > FLICKER_FLOOR
         else:
             assert pre.threshold_high == pytest.approx(max(seven_sigma, FLICKER_FLOOR))
         assert find_blobs(pre, p) == []
