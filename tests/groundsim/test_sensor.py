@@ -140,6 +140,23 @@ def test_offset_drift_grows_and_the_flat_field_event_steps_it_back():
     assert np.std(after - c0) < 1.0  # the drift restarted: a step of ~20 counts (1 sigma)
 
 
+def test_ffc_state_counts_the_events_and_the_seconds_since_the_last_one_ended():
+    """``(events, seconds since the last event ended, shutter closed)``: the shutter closes for 3 frames (0.1 s)
+    every 10 s from 10 s; while it is closed the offsets' drift holds its value at the closing (the time since
+    the last opening, or since 0 before the first), and restarts when it opens."""
+    s = sensor({"ffc": {"enabled": True, "period_s": 10.0, "first_s": 10.0, "frames": 3}})
+    want = {
+        5.0: (0, 5.0, False),
+        10.05: (1, 10.0, True),  # the first event: 10 s of drift since 0 when the shutter closed
+        10.6: (1, 0.5, False),
+        20.05: (2, 9.9, True),  # 9.9 s since the first opened (10.1 s)
+        25.1: (2, 5.0, False),
+    }
+    for t_s, (events, since_s, closed) in want.items():
+        got = s.ffc_state(t_s)
+        assert got[0] == events and got[2] is closed and got[1] == pytest.approx(since_s, abs=1e-9), (t_s, got)
+
+
 @pytest.mark.parametrize("mode", ["frozen", "dropped"])
 def test_flat_field_event_freezes_or_drops_frames(mode):
     s = sensor({"ffc": {"enabled": True, "period_s": 1.0, "first_s": 0.5, "frames": 4, "mode": mode}}, ir=IR)

@@ -136,7 +136,8 @@ class Sensor:
     # ------------------------------------------------------------------ flat-field events
 
     def ffc_state(self, t_s: float) -> tuple[int, float, bool]:
-        """``(events so far, seconds since the last one ended, shutter closed now)`` at ``t_s``."""
+        """``(events so far, seconds since the last one ended, shutter closed now)`` at ``t_s``; before the first
+        event the seconds are since 0, and while the shutter is closed they hold their value at its closing."""
         ffc = self.config.ffc
         if not ffc.enabled or t_s < ffc.first_s:
             return 0, max(float(t_s), 0.0), False
@@ -144,7 +145,7 @@ class Sensor:
         start = ffc.first_s + k * ffc.period_s
         closed_s = ffc.frames / self.frame_rate_hz
         if t_s < start + closed_s - 1e-9:
-            since = (start - ffc.period_s + closed_s) if k > 0 else start
+            since = (start - ffc.period_s + closed_s) if k > 0 else 0.0  # before the first: since time 0
             return k + 1, max(start - since, 0.0), True
         return k + 1, float(t_s) - (start + closed_s), False
 
