@@ -745,7 +745,9 @@ class CameraProtocol:
         build = {MSG_TRACKING_IMAGE_STATUS: self._image_status, MSG_TRACKING_GEO_STATUS: self._geo_status}
         built: dict[int, Outgoing | None] = {}  # each message built once, whichever links it is due on
         for link, msg_id in self.schedules.due(now_s, links):
-            msg = built[msg_id] = built[msg_id] if msg_id in built else build[msg_id](track)
+            if msg_id not in built:
+                built[msg_id] = build[msg_id](track)
+            msg = built[msg_id]
             if msg is not None:
                 out.append(replace(msg, via=link))
         return out

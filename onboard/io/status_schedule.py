@@ -161,6 +161,6 @@ class StatusSchedules:
         if sched is None:
             sched = self._links[link] = _LinkSchedule()
             while len(self._links) > self.max_links:
-                gone = [k for k in self._links if k not in self._alive][:1] or [next(iter(self._links))]
-                del self._links[gone[0]]
+                gone = next((k for k in self._links if k not in self._alive), next(iter(self._links)))
+                del self._links[gone]
         return sched
