@@ -92,8 +92,9 @@ What a ground station sees (MAVLink common.xml; QGroundControl's src/Camera disc
   in :mod:`onboard.io.camera_description`.
 * CAMERA_TRACKING_IMAGE_STATUS (#275) and CAMERA_TRACKING_GEO_STATUS (#276) while tracking, on each link at the
   intervals it set by SET_MESSAGE_INTERVAL (defaults ``output.tracking_*_status_hz``; what a link is, and that one
-  gone forgets its setting: :class:`~onboard.io.status_schedule.StatusSchedules`); once to every link when the
-  tracking ends, with status IDLE (QGC clears its box on it), then nothing until tracking resumes.
+  gone forgets its setting: :class:`~onboard.io.status_schedule.StatusSchedules`); once when the tracking ends,
+  with status IDLE (QGC clears its box on it), on each link that was sent an ACTIVE one, then nothing until
+  tracking resumes.
   #275's mode is the selection's (POINT for TRACK_POINT, RECTANGLE for TRACK_RECTANGLE and for an
   automatic acquisition); fields of the other mode are NaN.  POINT's ``radius`` is the tracked
   object's (half its box's larger side over the image width), NaN without a box: the command's own
@@ -380,6 +381,8 @@ class CameraProtocol:
         self._next_request_id = 1
         self._statustext_id = 0
         self._was_tracking = False
+        # each link sent an ACTIVE #275 since tracking began (a dict: the IDLEs leave in a fixed order)
+        self._status_links: dict[Hashable | None, None] = {}
 
     # ------------------------------------------------------------------ commands
 
@@ -725,8 +728,13 @@ class CameraProtocol:
             out += self._refuse(pend.command, MAV_RESULT_TEMPORARILY_REJECTED, reason, pend.requester)
         tracking = track is not None and track.state in ("tracking", "coasting")
         if not tracking:
-            if self._was_tracking:  # one IDLE status: a ground station clears its box on it
-                out.append(self._image_status(None))
+            if self._was_tracking:
+                # one IDLE status to each link that was sent an ACTIVE one this time and is still there: a ground
+                # station clears its box on it. A link that turned #275 off after that gets it too: QGC sends its -1
+                # after the stop, and an ACTIVE sent between the two would otherwise leave its box drawn for good
+                idle = self._image_status(None)
+                out += [replace(idle, via=link) for link in self._status_links if link in links]
+                self._status_links.clear()
                 self._was_tracking = False
             if self.selection_mode != CAMERA_TRACKING_MODE_NONE and track is not None and track.state == "lost":
                 self.selection_mode = CAMERA_TRACKING_MODE_NONE
@@ -750,6 +758,8 @@ class CameraProtocol:
             msg = built[msg_id]
             if msg is not None:
                 out.append(replace(msg, via=link))
+                if msg_id == MSG_TRACKING_IMAGE_STATUS:
+                    self._status_links[link] = None
         return out
 
     def _image_status(self, track: Track | None) -> Outgoing:

@@ -205,3 +205,24 @@ def test_a_flood_of_settings_between_two_ticks_does_not_evict_the_links_there_ar
         proto.handle(_on((0, ("10.1.0.1", 1000 + k)), cp.MAV_CMD_SET_MESSAGE_INTERVAL, 275, -1), 1.0, 0)
     assert _statuses_per_link(proto, 1.0, 1.0, [LINK_A, LINK_B]) == {LINK_A: 0, LINK_B: 10}
     assert proto.message_interval_us(275, LINK_A) == -1
+
+
+def test_the_idle_at_the_end_of_tracking_goes_to_each_link_that_was_sent_an_active_one():
+    """A link that turned #275 off before tracking began was sent none and gets no IDLE; one that turned it off
+    while tracking (QGC's -1 follows its stop) still gets one, so that an ACTIVE sent between its stop and its -1
+    does not leave its box drawn; a link gone gets nothing."""
+    from tests.onboard.test_camera_protocol import _track
+
+    link_c = (0, ("10.0.0.7", 14550))
+    proto = _proto(image_status_hz=10.0)
+    proto.handle(_on(LINK_A, cp.MAV_CMD_SET_MESSAGE_INTERVAL, 275, -1), 0.0, 0)
+    links = [LINK_A, LINK_B, link_c]
+    assert _statuses_per_link(proto, 0.0, 0.5, links) == {LINK_A: 0, LINK_B: 5, link_c: 5}
+    proto.handle(_on(LINK_B, cp.MAV_CMD_SET_MESSAGE_INTERVAL, 275, -1), 0.5, 0)
+    out = proto.tick(0.6, None, [LINK_A, LINK_B]) + proto.tick(0.7, None, [LINK_A, LINK_B])  # C's peer gone
+    idle = [o for o in out if o.msg == "camera_tracking_image_status"]
+    assert [(o.via, o.fields["tracking_status"]) for o in idle] == [(LINK_B, 0)]
+    # a camera given no links (the default: every link) still says it once
+    whole = _proto(image_status_hz=10.0)
+    whole.tick(0.0, _track())
+    assert [o.via for o in whole.tick(0.1, None) if o.msg == "camera_tracking_image_status"] == [None]
