@@ -496,7 +496,8 @@ def _add_eval(p: argparse.ArgumentParser) -> None:
     _nav_noise_option(
         p,
         "navigation errors of the telemetry, cases of config/noise_cases.yaml; several = every scenario"
-        " with each, side by side (default: RTK; e.g. --nav-noise RTK exact)",
+        " with each, side by side (default: each scenario's nav_noise, RTK unless it says otherwise;"
+        " e.g. --nav-noise RTK exact)",
         nargs="+",
     )
     _gnss_dropout_option(p)

@@ -22,8 +22,8 @@ from groundsim.evaluation.parallel import check_run_timeout, limit_blas_threads,
 from groundsim.evaluation.report import SCHEMA, holds_eval_report
 from groundsim.evaluation.scoring import format_gnss_dropout
 from groundsim.io.stop_signals import finish_despite_signals, first_signal_stops, print_interrupted
-from groundsim.world.nav_errors import InjectedErrors
-from groundsim.world.scenario import DEFAULT_NAV_NOISE, refuse_duplicate_scenarios
+from groundsim.world.nav_errors import InjectedErrors, run_nav_case
+from groundsim.world.scenario import refuse_duplicate_scenarios
 from onboard.core.errors import ConfigError
 
 __all__ = [
@@ -138,7 +138,8 @@ def cmd_eval(args) -> int:
             raise ConfigError(f"--seeds: expected an integer >= 1, got {args.seeds}")
         workers = pool_workers(args.workers)
         run_timeout = check_run_timeout(getattr(args, "run_timeout", None))
-        nav_noises = list(dict.fromkeys(args.nav_noise or [DEFAULT_NAV_NOISE]))
+        # no --nav-noise: each scenario flies its own nav_noise, as groundsim run, demo and dataset do (None)
+        nav_noises: list[str | None] = list(dict.fromkeys(args.nav_noise)) if args.nav_noise else [None]
         runs = len(scenarios) * len(nav_noises) * args.seeds
         if runs > MAX_EVAL_RUNS:
             raise ConfigError(
@@ -172,7 +173,9 @@ def cmd_eval(args) -> int:
         # anything else (a home folder, a TrackEval tree of the user's) is refused before it is touched
         refuse_foreign_out(args.out, holds_eval_report, "groundsim eval", f"report.json of schema {SCHEMA}")
         out = make_out_dir(args.out)
-        labels = [f"{sc.name}_{n}" for n in nav_noises for sc in scenarios] if len(nav_noises) > 1 else []
+        flown = [(sc, run_nav_case(sc, n).name) for n in nav_noises for sc in scenarios]
+        # the report's folders: <scenario>_<case> once the runs fly more than one case (write_eval_report)
+        labels = [f"{sc.name}_{n}" for sc, n in flown] if len({n for _, n in flown}) > 1 else []
         check_out_paths(out, labels or [sc.name for sc in scenarios])
         cameras = {
             sc.name: (sc.camera.intrinsics.width_px, sc.camera.intrinsics.height_px, sc.frame_rate_hz)

@@ -20,9 +20,9 @@ last telemetry sample, can have no pose; they are not processed (``RunResult.fra
 frames that were).
 
 Navigation errors.  The telemetry is what the simulated vehicle reports: the truth with the run's
-navigation errors (``EvalOptions.injected``, ``--nav-noise``, default RTK; :mod:`groundsim.world.nav_errors`,
-drawn from ``scenario.rng("nav.errors", seed)``), applied by the very function the MAVLink vehicle
-uses.  Stream rates are the ones the daemon's configuration requests (``mavlink.attitude_rate_hz``,
+navigation errors (``EvalOptions.injected``; ``--nav-noise``, default each scenario's ``nav_noise``;
+:mod:`groundsim.world.nav_errors`, drawn from ``scenario.rng("nav.errors", seed)``), applied by the very function
+the MAVLink vehicle uses.  Stream rates are the ones the daemon's configuration requests (``mavlink.attitude_rate_hz``,
 ``position_rate_hz``, ``gimbal_rate_hz``), which the simulated vehicle honours.
 
 The onboard configuration is the daemon's shipped one (``config/onboard.yaml``: its estimator noise

@@ -254,3 +254,24 @@ def test_a_folder_of_empty_folders_is_taken(tmp_path, failing_runs):
     (out / "mot").mkdir(parents=True)
     assert _cli(["eval", "--scenario", "P1", *FAST, "--out", str(out)])[0] == EXIT_FAILED
     assert report_module.holds_eval_report(out)
+
+
+def test_without_nav_noise_each_scenario_flies_its_own_case_as_run_and_dataset_do(tmp_path, monkeypatch):
+    """A scenario that says ``nav_noise: exact`` was evaluated under RTK, the option's default, with nothing saying
+    so; groundsim run, demo and dataset fly its own case.  --nav-noise still overrides it."""
+    from groundsim.world.nav_errors import run_nav_case
+
+    flown: list[tuple[str, str]] = []
+
+    def record(scenario, seed, options, *_args):
+        flown.append((scenario.name, run_nav_case(scenario, options.injected.nav_noise).name))
+        raise ConfigError("recorded, not flown")
+
+    monkeypatch.setattr(eval_module, "run_lockstep", record)
+    exact = tmp_path / "P1x.yaml"
+    exact.write_text((scenarios_dir() / "P1.yaml").read_text().replace("name: P1", "name: P1x") + "nav_noise: exact\n")
+    _cli(["eval", "--scenario", str(exact), "P2", *FAST, "--out", str(tmp_path / "a")])
+    assert sorted(flown) == [("P1x", "exact"), ("P2", "RTK")]
+    flown.clear()
+    _cli(["eval", "--scenario", str(exact), "P2", *FAST, "--nav-noise", "GNSS", "--out", str(tmp_path / "b")])
+    assert sorted(flown) == [("P1x", "GNSS"), ("P2", "GNSS")]
