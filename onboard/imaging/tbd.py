@@ -184,7 +184,7 @@ class TrackBeforeDetect:
         self._reports: list[tuple[PointCandidate, float]] = []  # this frame's reports and their local sigmas
         self.searched_frames = 0
         self.windowed_frames = 0
-        self.confirmed = 0
+        self.confirmed = 0  # peaks seen on confirm_frames frames in a row, reported on that frame or held back
 
     def reset(self) -> None:
         """Forget the integration and the pending peaks (the next frame starts afresh)."""
@@ -539,10 +539,10 @@ class TrackBeforeDetect:
             q = near
             q.u_px, q.v_px, q.velocity_pxpf, q.seen = u, v, vel, True
             q.count += 1
+            if q.count == p.confirm_frames:  # counted once, whether or not this frame's reports have room
+                self.confirmed += 1
+                log.debug("track-before-detect: peak confirmed at (%.1f, %.1f), %.1f sigma", u, v, z)
             if q.count >= p.confirm_frames and len(out) < p.max_candidates:
-                if q.count == p.confirm_frames:
-                    self.confirmed += 1
-                    log.debug("track-before-detect: peak confirmed at (%.1f, %.1f), %.1f sigma", u, v, z)
                 out.append(PointCandidate(u, v, bbox, area, peak, max(z / p.threshold_sigma, 1.0)))
                 self._reports.append((out[-1], z))
         # a confirmed peak survives a few frames unseen (a dim target dips), a pending one none

@@ -3,6 +3,7 @@ its hook in the objects chain."""
 
 from __future__ import annotations
 
+import logging
 import math
 
 import numpy as np
@@ -124,20 +125,27 @@ def _peak(z: float, u: float, v: float, vel=(0.0, 0.0)) -> tuple:
     return (z, u, v, vel, (int(u) - 1, int(v) - 1, 3, 3), 9, 50.0)
 
 
-def test_a_peak_is_started_above_the_threshold_continued_above_the_lower_one_and_confirmed_in_a_row():
+def test_a_peak_is_started_above_the_threshold_continued_above_the_lower_one_and_confirmed_in_a_row(caplog):
     """The confirmation alone, on hand-made peaks: a peak under ``threshold_sigma`` never starts, however often it
     is seen; one at it starts, continues above ``track_threshold_sigma`` where its velocity puts it (3.5 px a frame,
     past ``confirm_radius_px``: matched only as predicted), and is reported from its ``confirm_frames``-th frame in a
-    row, at most ``max_candidates`` a frame."""
+    row, at most ``max_candidates`` a frame.  ``confirmed`` counts (and the log names) every peak confirmed, the one
+    held back by ``max_candidates`` too: it reaches ``confirm_frames`` once, so it would never be counted later."""
     p = TbdParams(confirm_frames=3, max_candidates=1)
     tbd = TrackBeforeDetect(K, p)
     assert [tbd._confirm([_peak(5.9, 50.0, 50.0)]) for _ in range(5)] == [[]] * 5 and tbd._pending == []
-    outs = [
-        tbd._confirm([_peak(z, 20.0 + 3.5 * k, 50.0, (3.5, 0.0)), _peak(z, 90.0, 20.0)])
-        for k, z in enumerate((6.0, 4.5, 4.5, 4.5))
-    ]
+    with caplog.at_level(logging.DEBUG, logger="onboard.imaging.tbd"):
+        outs = [
+            tbd._confirm([_peak(z, 20.0 + 3.5 * k, 50.0, (3.5, 0.0)), _peak(z, 90.0, 20.0)])
+            for k, z in enumerate((6.0, 4.5, 4.5, 4.5))
+        ]
     assert [[(c.u_px, c.v_px) for c in out] for out in outs] == [[], [], [(27.0, 50.0)], [(30.5, 50.0)]]
-    assert tbd.confirmed == 1 and outs[2][0].score == 1.0  # the second, held back by max_candidates, is not counted
+    assert outs[2][0].score == 1.0
+    assert tbd.confirmed == 2
+    assert [r.getMessage() for r in caplog.records if "confirmed" in r.getMessage()] == [
+        "track-before-detect: peak confirmed at (27.0, 50.0), 4.5 sigma",
+        "track-before-detect: peak confirmed at (90.0, 20.0), 4.5 sigma",
+    ]
 
 
 @pytest.mark.parametrize("unseen, kept", [(3, True), (4, False)])
