@@ -9,7 +9,8 @@ stand-in for zenoh's sample whose payload has ``len`` and ``to_bytes`` as ``ZByt
 Properties:
 
 * the decoder raises nothing but :class:`~onboard.core.irframe.IrFrameError` with a documented
-  ``reason``; what it accepts re-encodes to the same bytes (pad bytes zeroed) and obeys ``max_bytes``;
+  ``reason``; what it accepts re-encodes to the same bytes (its zoom field with them, any float32 it holds)
+  and obeys ``max_bytes``;
 * the callback never raises; each payload is either queued or counted exactly once, as
   ``frame_<reason>`` (never the catch-all ``frame_receive_error``);
 * valid frames between garbage payloads all reach the queue, in order, with their pixels.
@@ -18,6 +19,8 @@ Budget: ``tests/fuzz_budget.py`` (``IRTRACK_FUZZ_EXAMPLES`` runs it longer).
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 import pytest
@@ -42,6 +45,7 @@ frames = st.builds(
     pixels=st.sampled_from([np.uint8, np.uint16]).flatmap(
         lambda dt: hnp.arrays(dt, hnp.array_shapes(min_dims=2, max_dims=2, min_side=1, max_side=MAX_SIDE_PX))
     ),
+    zoom=st.one_of(st.just(0.0), st.floats(width=32)),  # not stated, any zoom, and what no zoom can be (NaN, -1)
 )
 
 
@@ -58,10 +62,10 @@ def mutated_payload(draw):
         if op == "field":
             offset, fmt = draw(
                 st.sampled_from(
-                    [(0, "4s"), (4, "<H"), (6, "<H"), (8, "<I"), (12, "<I"), (16, "<I"), (20, "<Q"), (28, "4s")]
+                    [(0, "4s"), (4, "<H"), (6, "<H"), (8, "<I"), (12, "<I"), (16, "<I"), (20, "<Q"), (28, "<f")]
                 )
             )
-            size = {"4s": 4, "<H": 2, "<I": 4, "<Q": 8}[fmt]
+            size = {"4s": 4, "<H": 2, "<I": 4, "<Q": 8, "<f": 4}[fmt]
             if len(data) >= offset + size:
                 data[offset : offset + size] = draw(
                     st.one_of(
@@ -87,8 +91,11 @@ as_buffer = st.sampled_from([bytes, bytearray, lambda b: memoryview(b), lambda b
 
 
 def _same_frame(a: IrFrame, b: IrFrame) -> bool:
-    return (a.seq, a.time_boot_us, a.pixels.dtype) == (b.seq, b.time_boot_us, b.pixels.dtype) and np.array_equal(
-        a.pixels, b.pixels
+    same_zoom = a.zoom == b.zoom or (math.isnan(a.zoom) and math.isnan(b.zoom))
+    return (
+        (a.seq, a.time_boot_us, a.pixels.dtype) == (b.seq, b.time_boot_us, b.pixels.dtype)
+        and same_zoom
+        and np.array_equal(a.pixels, b.pixels)
     )
 
 
@@ -105,7 +112,11 @@ def test_decoder_raises_only_its_rejection_and_what_it_accepts_round_trips(paylo
         assert exc.reason in REJECT_REASONS
         return
     assert max_bytes is None or len(payload) <= max_bytes
-    assert encode_irframe(f) == payload[:28] + b"\x00" * 4 + payload[32:]
+    again = encode_irframe(f)
+    assert again[:28] == payload[:28] and again[32:] == payload[32:]
+    # the zoom field: the same float32, but a NaN, whose payload bits a Python float may quiet (still not stated)
+    assert again[28:32] == payload[28:32] or (math.isnan(f.zoom) and math.isnan(decode_irframe(again).zoom))
+    assert f.stated_zoom is None or (math.isfinite(f.stated_zoom) and f.stated_zoom > 0)
     assert not f.pixels.flags.writeable
 
 

@@ -1,6 +1,6 @@
 """The IR frame and its wire format (zenoh key ``irtrack/<vehicle>/ir/frame``), pure.
 
-Wire format, version 1: a 32-byte little-endian header, ``struct '<4sHHIIIQ4x'``
+Wire format, version 1: a 32-byte little-endian header, ``struct '<4sHHIIIQf'``
 
 ======  ======  =====================================================================
 offset  type    field
@@ -13,8 +13,17 @@ offset  type    field
 16      u32     sequence number (the sender's frame counter; wraps at 2**32)
 20      u64     capture time in microseconds on the vehicle's boot clock (the clock of
                 MAVLink ``time_boot_ms``), ``time_boot_us``
-28      4x      padding (zero on send, ignored on receive)
+28      f32     zoom: the optical/digital zoom factor of this frame relative to the zoom
+                ``camera.intrinsics`` were calibrated at (1.0 = as calibrated); 0.0 = not
+                stated (these bytes were padding, zero on send, before the field existed)
 ======  ======  =====================================================================
+
+The zoom field keeps version 1 in both directions: every earlier sender wrote zeros there (not
+stated, read as before) and an earlier reader ignores it.  A zoom that is not finite or is
+negative refuses nothing (a sloppy sender's padding must not stop tracking): the frame keeps it
+as sent and :attr:`IrFrame.stated_zoom` reads it as not stated (:attr:`IrFrame.zoom_invalid`;
+the pipeline counts it as ``frame_zoom_invalid``).  What a stated zoom does to the daemon's
+geometry is :func:`zoom_off_calibration`'s, used by :mod:`onboard.pipeline.frame_pipeline`.
 
 then ``height * width * depth`` bytes of pixels, row-major (row 0 is the top of the image,
 see "Image" in :mod:`onboard.core.frames`), nothing after them.
@@ -29,6 +38,7 @@ receiver, not to this module.
 
 from __future__ import annotations
 
+import math
 import struct
 from dataclasses import dataclass
 
@@ -49,9 +59,12 @@ __all__ = [
     "encode_irframe",
     "decode_irframe",
     "check_payload_size",
+    "ZOOM_NOT_STATED",
+    "ZOOM_TOLERANCE",
+    "zoom_off_calibration",
 ]
 
-HEADER = struct.Struct("<4sHHIIIQ4x")
+HEADER = struct.Struct("<4sHHIIIQf")
 if HEADER.size != 32:  # pragma: no cover - a typo in the format string, caught at import
     raise RuntimeError(f"IR frame header must be 32 bytes, struct gives {HEADER.size}")
 
@@ -68,6 +81,15 @@ DEFAULT_MAX_BYTES = 16 * 1024 * 1024
 
 _U32_MAX = 2**32 - 1
 _U64_MAX = 2**64 - 1
+_F32 = struct.Struct("<f")
+
+#: the zoom field's value for "not stated" (what every sender wrote before the field existed)
+ZOOM_NOT_STATED = 0.0
+#: a stated zoom this far from 1.0 (relative) or farther is not the zoom ``camera.intrinsics`` were calibrated at:
+#: at the edge of a 640 px frame (320 px off centre, fx 765 px) 0.5 % moves a pixel's bearing by 1.6 px, about
+#: the line of sight's own 1 sigma there (0.3 px centroid and 0.12 deg attitude: 1.6 px); a zoom stated as 1.0
+#: through a float32 or a lens encoder's rounding stays well within it
+ZOOM_TOLERANCE = 0.005
 
 #: Every value ``IrFrameError.reason`` can take.
 REJECT_REASONS = frozenset({"short", "magic", "version", "encoding", "size", "too_large", "dims", "field"})
@@ -102,11 +124,18 @@ class IrFrame:
         ``(H, W)`` numpy array, dtype uint8 (mono8) or native uint16 (mono16), H, W >= 1.
         Stored as a read-only view (the caller's array is not modified, but must not be
         written to afterwards if it is shared).
+
+    zoom
+        The zoom field as sent (module docstring): the zoom relative to the calibrated one, 0.0 not
+        stated.  Any real number is kept (rounded to float32, as on the wire): a value not finite or
+        negative is what a sloppy sender's padding looks like, not a reason to refuse the frame;
+        :attr:`stated_zoom` reads it.
     """
 
     seq: int
     time_boot_us: int
     pixels: np.ndarray
+    zoom: float = ZOOM_NOT_STATED
 
     def __post_init__(self) -> None:
         for name, hi in (("seq", _U32_MAX), ("time_boot_us", _U64_MAX)):
@@ -116,6 +145,14 @@ class IrFrame:
             if not 0 <= int(v) <= hi:
                 raise IrFrameError("field", f"IrFrame.{name} must be in [0, {hi}], got {v}")
             object.__setattr__(self, name, int(v))
+        z = self.zoom
+        if isinstance(z, (bool, np.bool_)) or not isinstance(z, (int, float, np.integer, np.floating)):
+            raise IrFrameError("field", f"IrFrame.zoom must be a number, got {type(z).__name__}")
+        try:  # what the wire carries: a float32 (so a decoded frame equals the one encoded)
+            z32 = _F32.unpack(_F32.pack(float(z)))[0]
+        except OverflowError as exc:
+            raise IrFrameError("field", f"IrFrame.zoom {z!r} does not fit a float32") from exc
+        object.__setattr__(self, "zoom", z32)
         px = self.pixels
         if not isinstance(px, np.ndarray):
             raise IrFrameError("field", f"IrFrame.pixels must be a numpy array, got {type(px).__name__}")
@@ -134,6 +171,18 @@ class IrFrame:
     def encoding(self) -> int:
         """Wire encoding code: :data:`ENCODING_MONO8` or :data:`ENCODING_MONO16`."""
         return ENCODING_MONO8 if self.pixels.dtype == np.uint8 else ENCODING_MONO16
+
+    @property
+    def zoom_invalid(self) -> bool:
+        """The zoom field holds a value no zoom can have (not finite, or negative): read as not stated."""
+        return not (math.isfinite(self.zoom) and self.zoom >= 0.0)
+
+    @property
+    def stated_zoom(self) -> float | None:
+        """The zoom the frame states, relative to the calibrated one; None when not stated (0.0) or invalid."""
+        if self.zoom_invalid or self.zoom == ZOOM_NOT_STATED:
+            return None
+        return self.zoom
 
     @property
     def height_px(self) -> int:
@@ -155,8 +204,16 @@ def encode_irframe(frame: IrFrame) -> bytes:
     px = frame.pixels
     dtype = _DTYPE_OF_ENCODING[frame.encoding]
     px = np.ascontiguousarray(px, dtype=dtype)
-    header = HEADER.pack(MAGIC, VERSION, frame.encoding, px.shape[1], px.shape[0], frame.seq, frame.time_boot_us)
+    header = HEADER.pack(
+        MAGIC, VERSION, frame.encoding, px.shape[1], px.shape[0], frame.seq, frame.time_boot_us, frame.zoom
+    )
     return b"".join((header, px.data.cast("B")))
+
+
+def zoom_off_calibration(stated_zoom: float | None, tolerance: float = ZOOM_TOLERANCE) -> bool:
+    """Whether a frame's :attr:`IrFrame.stated_zoom` is not the zoom ``camera.intrinsics`` were calibrated at:
+    more than ``tolerance`` (relative) from 1.0.  Not stated (None) is taken as calibrated, as before the field."""
+    return stated_zoom is not None and abs(stated_zoom - 1.0) > tolerance
 
 
 def check_payload_size(nbytes: int, max_bytes: int = DEFAULT_MAX_BYTES) -> None:
@@ -193,7 +250,7 @@ def decode_irframe(payload: bytes | bytearray | memoryview, max_bytes: int = DEF
             raise IrFrameError("field", "IR frame payload must be a contiguous byte buffer") from exc
     n = mv.nbytes
     check_payload_size(n, max_bytes)
-    magic, version, encoding, width, height, seq, time_boot_us = HEADER.unpack_from(mv, 0)
+    magic, version, encoding, width, height, seq, time_boot_us, zoom = HEADER.unpack_from(mv, 0)
     if magic != MAGIC:
         raise IrFrameError("magic", f"IR frame magic is {bytes(magic)!r}, expected {MAGIC!r}")
     if version != VERSION:
@@ -220,4 +277,4 @@ def decode_irframe(payload: bytes | bytearray | memoryview, max_bytes: int = DEF
         pixels = pixels.copy()
     if not pixels.dtype.isnative:  # big-endian host only: one conversion to native order
         pixels = pixels.astype(pixels.dtype.newbyteorder("="))
-    return IrFrame(seq=seq, time_boot_us=time_boot_us, pixels=pixels)
+    return IrFrame(seq=seq, time_boot_us=time_boot_us, pixels=pixels, zoom=zoom)

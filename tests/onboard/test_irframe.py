@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import struct
 
 import numpy as np
@@ -23,6 +24,7 @@ from onboard.core.irframe import (
     check_payload_size,
     decode_irframe,
     encode_irframe,
+    zoom_off_calibration,
 )
 
 HEADER_BYTES = 32
@@ -33,8 +35,17 @@ def _frame(h=4, w=5, dtype=np.uint16, seq=7, t_us=1_234_567):
     return IrFrame(seq=seq, time_boot_us=t_us, pixels=px)
 
 
-def _header(magic=MAGIC, version=1, encoding=2, width=5, height=4, seq=7, t_us=1_234_567):
-    return HEADER.pack(magic, version, encoding, width, height, seq, t_us)
+def _header(magic=MAGIC, version=1, encoding=2, width=5, height=4, seq=7, t_us=1_234_567, zoom=0.0):
+    return HEADER.pack(magic, version, encoding, width, height, seq, t_us, zoom)
+
+
+def _reencodes_to(f: IrFrame, payload: bytes) -> bool:
+    """``encode_irframe(f)`` is ``payload``, but for a NaN zoom's payload bits (a float32 NaN through a Python
+    float may come back quieted: still a NaN, still not stated)."""
+    again = encode_irframe(f)
+    if math.isnan(f.zoom):
+        return again[:28] == payload[:28] and again[32:] == payload[32:] and math.isnan(decode_irframe(again).zoom)
+    return again == payload
 
 
 def test_header_is_32_bytes_little_endian_at_the_documented_offsets():
@@ -202,6 +213,8 @@ _frames = st.builds(
     pixels=st.sampled_from([np.uint8, np.uint16]).flatmap(
         lambda dt: hnp.arrays(dt, hnp.array_shapes(min_dims=2, max_dims=2, min_side=1, max_side=24))
     ),
+    # any float32 a sender may write there: not stated, zooms, and the invalid ones a sloppy sender's padding makes
+    zoom=st.one_of(st.just(0.0), st.floats(width=32), st.sampled_from([1.0, 2.0, -1.0, math.inf, math.nan])),
 )
 
 
@@ -212,9 +225,12 @@ def test_round_trip_property(f):
     assert len(payload) == HEADER_BYTES + f.pixels.size * f.pixels.itemsize
     g = decode_irframe(payload)
     assert (g.seq, g.time_boot_us, g.encoding) == (f.seq, f.time_boot_us, f.encoding)
+    assert g.zoom == f.zoom or (math.isnan(g.zoom) and math.isnan(f.zoom))
+    assert g.stated_zoom == f.stated_zoom and g.zoom_invalid == f.zoom_invalid
+    assert g.stated_zoom is None or (math.isfinite(g.stated_zoom) and g.stated_zoom > 0)
     assert g.pixels.dtype == f.pixels.dtype
     np.testing.assert_array_equal(g.pixels, f.pixels)
-    assert encode_irframe(g) == payload
+    assert _reencodes_to(g, payload)
 
 
 @settings(max_examples=400, deadline=None)
@@ -224,8 +240,8 @@ def test_random_bytes_raise_only_irframe_error(data):
         f = decode_irframe(data)
     except IrFrameError as e:
         assert e.reason in REJECT_REASONS
-    else:  # random bytes that happen to be a valid frame must round-trip exactly
-        assert encode_irframe(f) == data[:28] + b"\x00" * 4 + data[32:]
+    else:  # random bytes that happen to be a valid frame must round-trip exactly, their zoom field with them
+        assert _reencodes_to(f, data)
 
 
 @settings(max_examples=300, deadline=None)
@@ -240,7 +256,7 @@ def test_fuzzed_headers_are_accepted_only_when_consistent(version, encoding, wid
     depth = {1: 1, 2: 2}.get(encoding, 1)
     want = width * height * depth
     body_len = max(0, min(want, 4096) + extra)
-    payload = HEADER.pack(MAGIC, version, encoding, width, height, 1, 2) + b"\x07" * body_len
+    payload = HEADER.pack(MAGIC, version, encoding, width, height, 1, 2, 0.0) + b"\x07" * body_len
     try:
         f = decode_irframe(payload, max_bytes=HEADER_BYTES + 4096)
     except IrFrameError as e:
@@ -251,5 +267,52 @@ def test_fuzzed_headers_are_accepted_only_when_consistent(version, encoding, wid
 
 
 def test_header_struct_matches_issue_format():
-    assert HEADER.format in ("<4sHHIIIQ4x", b"<4sHHIIIQ4x")
-    assert struct.calcsize("<4sHHIIIQ4x") == HEADER_BYTES
+    assert HEADER.format in ("<4sHHIIIQf", b"<4sHHIIIQf")
+    assert struct.calcsize("<4sHHIIIQf") == HEADER_BYTES
+
+
+# ----------------------------------------------------------------------------- the zoom field
+
+
+@pytest.mark.parametrize("zoom", [1.0, 2.0, 0.5, 1.25])
+def test_a_stated_zoom_is_a_little_endian_float32_at_offset_28_and_round_trips(zoom):
+    payload = encode_irframe(IrFrame(seq=1, time_boot_us=2, pixels=np.zeros((2, 3), np.uint8), zoom=zoom))
+    assert payload[28:32] == struct.pack("<f", zoom)
+    g = decode_irframe(payload)
+    assert g.zoom == zoom and g.stated_zoom == zoom and not g.zoom_invalid
+
+
+def test_a_zoom_is_kept_as_its_float32_so_a_decoded_frame_equals_the_one_sent():
+    f = IrFrame(seq=1, time_boot_us=2, pixels=np.zeros((2, 2), np.uint8), zoom=1.1)
+    assert f.zoom == struct.unpack("<f", struct.pack("<f", 1.1))[0]
+    assert decode_irframe(encode_irframe(f)).zoom == f.zoom
+
+
+def test_an_old_senders_zero_padding_decodes_as_zoom_not_stated():
+    """Every sender before the field wrote zeros there (struct '<4sHHIIIQ4x'): read as before."""
+    old = struct.pack("<4sHHIIIQ4x", MAGIC, 1, ENCODING_MONO16, 5, 4, 7, 1_234_567) + b"\x00" * 40
+    g = decode_irframe(old)
+    assert g.zoom == 0.0 and g.stated_zoom is None and not g.zoom_invalid
+    assert encode_irframe(_frame())[28:32] == b"\x00" * 4  # and a frame that states none still sends zeros
+
+
+@pytest.mark.parametrize("zoom", [math.nan, -math.nan, -1.0, math.inf, -math.inf, -1e-30])
+def test_a_zoom_no_zoom_can_be_is_not_refused_and_reads_as_not_stated(zoom):
+    g = decode_irframe(_header(zoom=zoom) + b"\x00" * 40)
+    assert g.pixels.shape == (4, 5)  # the frame is taken
+    assert g.zoom_invalid and g.stated_zoom is None
+
+
+def test_a_zoom_that_does_not_fit_a_float32_or_is_no_number_is_refused_by_the_constructor():
+    for zoom in (1e39, "2", True, None):
+        with pytest.raises(IrFrameError) as e:
+            IrFrame(seq=0, time_boot_us=0, pixels=np.zeros((2, 2), np.uint8), zoom=zoom)
+        assert e.value.reason == "field" and "IrFrame.zoom" in str(e.value)
+
+
+@pytest.mark.parametrize(
+    "stated, off",
+    [(None, False), (1.0, False), (1.004, False), (0.996, False), (1.006, True), (0.99, True), (2.0, True)],
+)
+def test_zoom_off_calibration_beyond_half_a_percent(stated, off):
+    assert zoom_off_calibration(stated) is off

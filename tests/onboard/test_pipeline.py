@@ -284,13 +284,10 @@ def _good(rig: Rig, k: int) -> bytes:
 
 
 def _with_header(payload: bytes, **changes) -> bytes:
-    magic, version, enc, w, h, seq, t = HEADER.unpack_from(payload, 0)
-    vals = dict(magic=magic, version=version, enc=enc, w=w, h=h, seq=seq, t=t)
+    magic, version, enc, w, h, seq, t, zoom = HEADER.unpack_from(payload, 0)
+    vals = dict(magic=magic, version=version, enc=enc, w=w, h=h, seq=seq, t=t, zoom=zoom)
     vals.update(changes)
-    return (
-        HEADER.pack(vals["magic"], vals["version"], vals["enc"], vals["w"], vals["h"], vals["seq"], vals["t"])
-        + payload[HEADER.size :]
-    )
+    return HEADER.pack(*vals.values()) + payload[HEADER.size :]
 
 
 BAD_PAYLOADS = {
