@@ -108,7 +108,8 @@ WATCH_PERIOD_S = 0.5  # the watchdog's input checks in the main loop
 #: an output tap's close gets at least this long past a shutdown deadline: enough to finish a file's summary
 MIN_TAP_CLOSE_S = 0.1
 MAIN_LOOP_MAX_IDLE_S = 0.05  # the main loop's longest sleep without input (stop requests, timers it cannot see)
-#: ``frame_*`` counter keys that are accepted events, not refusals
+#: the watchdog's warnings the pipeline withholds the geometry for (zoom_mismatch is not one: the pipeline decides
+#: it from each frame's own zoom, not a frame late from the watchdog's)
 MISMATCH_WARNINGS = frozenset({"gimbal_mismatch", "camera_mismatch"})
 
 
@@ -499,6 +500,7 @@ class OnboardService:
             track = with_utc(self.pipeline.process(frame, received_ns), self.utc.mapping)  # its UTC, once known
             now_s = self._clock()
             self.watchdog.frame_size(now_s, frame.width_px, frame.height_px)
+            self.watchdog.zoom(now_s, self.pipeline.last_zoom)
             self.watchdog.residual(now_s, track.residual_rms_norm)
             self.watchdog.navigation(now_s, self.pipeline.last_position_age_s)
             self.watchdog.camera_clock(now_s, self.pipeline.clock_apart_s)
@@ -817,6 +819,8 @@ class OnboardService:
             },
             warnings=warnings,
             withheld_because=self.pipeline.withheld_because,
+            zoom=self.pipeline.last_zoom,
+            frames_withheld_zoom=self.pipeline.frames_withheld_zoom,
             camera_time_offset=time_offset_section(self.pipeline, self.config),
         )
         status["utc"] = self.utc.status()  # boot clock -> UTC (onboard.core.utc_clock)

@@ -19,6 +19,13 @@ seconds, its own clock) and what it saw; tests feed it a fake clock.  Each condi
     stays below 3 with overwhelming probability).  Mount angles or intrinsics wrong are suspected.
     One estimate at or below the threshold starts the count again; estimates without the figure
     (None/NaN) neither count nor reset.
+``zoom_mismatch``
+    The IR frames state a zoom (IRF1's zoom field, relative to the zoom ``camera.intrinsics`` were calibrated at)
+    more than :data:`~onboard.core.irframe.ZOOM_TOLERANCE` (0.5 %) from 1.0: every bearing made from the
+    intrinsics is off by the zoom's ratio (a 2x zoom of P1's camera: lines of sight 1.5 deg off at a stated
+    0.12 deg), which the residuals do not show.  The pipeline withholds each such frame's line of sight and 3-D
+    position itself (:class:`~onboard.pipeline.frame_pipeline.FramePipeline`); this names it.  Fed with every frame
+    taken, raised by the first such frame and cleared by the first frame at 1.0 or stating none.
 
 ``gimbal_mismatch``
     The configured mount and the vehicle disagree about a gimbal: GIMBAL_DEVICE_ATTITUDE_STATUS (#285)
@@ -127,6 +134,7 @@ from dataclasses import dataclass
 
 from onboard.core.checks import is_positive_number
 from onboard.core.errors import InputError
+from onboard.core.irframe import zoom_off_calibration
 
 __all__ = ["WatchdogWarning", "Watchdog", "INPUT_TIMEOUT_S", "NAV_GAP_S", "RESIDUAL_THRESHOLD"]
 
@@ -413,6 +421,18 @@ class Watchdog:
             f"frames are {int(width_px)} x {int(height_px)} px but the configured camera is "
             f"{cw} x {ch} px (camera.intrinsics.width_px / height_px): they are refused; configure the "
             f"camera that sends them",
+        )
+
+    def zoom(self, now_s: float, stated_zoom: float | None) -> None:
+        """The zoom the last frame taken stated (relative to the one ``camera.intrinsics`` were calibrated at; None:
+        not stated, taken as calibrated)."""
+        self._hold(
+            "zoom_mismatch",
+            zoom_off_calibration(stated_zoom)
+            and f"IR frames state a zoom of {stated_zoom:g}x but camera.intrinsics are for 1.0x (the zoom they were "
+            f"calibrated at): every line of sight made with them would be off by that ratio, so lines of sight and "
+            f"3-D positions are withheld (the 2-D track goes on); set the camera's zoom back to 1.0, or calibrate "
+            f"camera.intrinsics at this zoom and configure them (the camera then states its zoom relative to that)",
         )
 
     def video_rate(self, now_s: float, camera_rate_hz: float | None, video_fps: float, bitrate_bps: int) -> None:

@@ -265,8 +265,17 @@ STATUS_JSON_KEYS: tuple[tuple[str, dict[str, Any]], ...] = (
             "properties": {
                 "output": {"type": "string", "enum": ["published", "withheld"]},
                 "withheld_because": {"type": "array", "items": {"type": "string"}},
+                "zoom": {
+                    "type": ["number", "null"],
+                    "description": "the zoom the last frame taken stated (IRF1), relative to the one camera.intrinsics "
+                    "were calibrated at; null: not stated",
+                },
+                "frames_withheld_zoom": {
+                    "type": "integer",
+                    "description": "frames whose line of sight and 3-D position were withheld for their stated zoom",
+                },
             },
-            "required": ["output", "withheld_because"],
+            "required": ["output", "withheld_because", "zoom", "frames_withheld_zoom"],
         },
     ),
     ("processing_ms", _SUMMARY),
@@ -435,6 +444,8 @@ def build_status(
     stages_ms: Mapping[str, Mapping[str, Any]] | None = None,
     warnings: list[Mapping[str, str]] | tuple = (),
     withheld_because: tuple[str, ...] | list[str] = (),
+    zoom: float | None = None,
+    frames_withheld_zoom: int = 0,
     camera_time_offset: Mapping[str, Any] | None = None,
     last_track_age_s: float | None = None,
     frames_missing: int = 0,
@@ -467,7 +478,9 @@ def build_status(
     fix, each ``{code, message}`` with the message naming what to check (:mod:`onboard.app.watchdog`);
     empty when all is well.  ``geometry``: ``published`` (line of sight and 3-D positions go out) or
     ``withheld``, with ``withheld_because`` the warnings that withhold them (a configuration mismatch:
-    the camera attitude the daemon computes is wrong, so is any direction or position made from it).
+    the camera attitude the daemon computes is wrong, so is any direction or position made from it; ``zoom_mismatch``:
+    the frames state a zoom ``camera.intrinsics`` are not for), ``zoom`` the zoom the last frame taken stated
+    (IRF1, relative to the calibrated one; null: not stated) and ``frames_withheld_zoom`` the frames withheld for it.
     ``camera_time_offset``: the camera clock's offset against the autopilot's (:mod:`onboard.estimation.time_offset`),
     ``{estimate_ms, sigma_ms, state: unknown|estimating|confident, compensated_ms, blocks, frames, refused_blocks,
     excitation_mradps, warn_threshold_ms}`` (positive: frames stamped late); null when ``time_offset.enabled`` is false.
@@ -489,6 +502,8 @@ def build_status(
         "geometry": {
             "output": "withheld" if withheld_because else "published",
             "withheld_because": list(withheld_because),
+            "zoom": json_number(zoom),
+            "frames_withheld_zoom": int(frames_withheld_zoom),
         },
         "processing_ms": dict(processing_ms),
         "latency_ms": dict(latency_ms),

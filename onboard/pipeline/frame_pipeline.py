@@ -17,7 +17,13 @@ Steps of :meth:`FramePipeline.process` (time ``t = frame.time_boot_us``, boot cl
    reboot or a sender restart is accepted once a run of mutually consistent frames confirms it
    (``frame_time_reset``, ``frame_stream_restart``: the estimator restarts; ``frame_sequence_reset``).  After a
    step the telemetry did not share, the frames get no pose (``pose_clock_apart``, :attr:`FramePipeline.clock_apart_s`)
-   until their stamps are within the threshold of the telemetry's again.
+   until their stamps are within the threshold of the telemetry's again.  Then the frame's zoom (IRF1's field,
+   :attr:`~onboard.core.irframe.IrFrame.stated_zoom`): one stated more than
+   :data:`~onboard.core.irframe.ZOOM_TOLERANCE` from 1.0 is not the zoom ``camera.intrinsics`` were calibrated at,
+   so every bearing made from them is off by the zoom's ratio: the frame's line of sight and 3-D position are
+   withheld (``zoom_mismatch`` in :attr:`FramePipeline.withheld_because`, decided on the frame itself, not a frame
+   late) and its row reaches neither the estimator nor the clock-offset estimator (step 4, 7); the 2-D track goes
+   on.  A zoom no zoom can be (NaN, inf, negative) is read as not stated and counted (``frame_zoom_invalid``).
 2. Imaging: ``tracker.update(pixels)`` (the single chain, :class:`~onboard.imaging.TargetTracker`); a chain that
    ``uses_pose`` (the objects chain) gets ``t`` (frames the daemon dropped are time its tracks must be predicted
    over) and a function that returns the camera's rotation at ``t``, which it calls once it has detected the
@@ -72,7 +78,7 @@ frame's pixels); and, the tracker at fault, not the frame, ``tracker_error`` (``
 ``tracker_output_invalid`` (its answer is no track update: None, a centre or box not finite, a measured centre off the
 frame, a negative box size, a track id below 1, an unknown state; :func:`~onboard.pipeline.answer_checks.tracker_problem`).  Notable accepted
 events: ``frame_time_reset``, ``frame_sequence_reset``, ``frame_stream_restart``, ``frame_encoding_changed`` (INFO: mono8
-and mono16 alternating, a camera's mode or a second publisher), ``estimator_pose_reset``
+and mono16 alternating, a camera's mode or a second publisher), ``frame_zoom_invalid`` (step 1), ``estimator_pose_reset``
 (step 4).  Estimator problems never refuse a frame: they are counted as ``estimator_input`` (it refused its
 input), ``estimator_error`` (it raised) or ``estimator_output_invalid`` (its answer is not an estimate of the
 protocol, :mod:`onboard.pipeline.plugins`: a field missing or of the wrong type or shape, a position, velocity,
@@ -93,7 +99,14 @@ import numpy as np
 from onboard.core.counters import RejectCounter
 from onboard.core.errors import InputError
 from onboard.core.frames import GeodeticOrigin, PinholeIntrinsics, geodetic_from_ned, rotmat_from_quat
-from onboard.core.irframe import ENCODING_MONO8, ENCODING_MONO16, IrFrame, IrFrameError, decode_irframe
+from onboard.core.irframe import (
+    ENCODING_MONO8,
+    ENCODING_MONO16,
+    IrFrame,
+    IrFrameError,
+    decode_irframe,
+    zoom_off_calibration,
+)
 from onboard.core.pose_types import PoseAt
 from onboard.core.status import RollingStats
 from onboard.core.track import LineOfSight, Track, line_of_sight_ned
@@ -111,6 +124,7 @@ __all__ = [
     "FramePipeline",
     "TRACKER_REFUSALS",
     "ACCEPTED_FRAME_EVENTS",
+    "ZOOM_MISMATCH",
     "make_estimator",
     "make_tracker",
 ]
@@ -136,8 +150,10 @@ TRACKER_REFUSALS = ("tracker_output_invalid", "tracker_error")
 #: ``frame_*`` counter keys of events on frames that were taken (module docstring), not refusals: the status's
 #: ``frames.rejected`` sums every other ``frame_*`` key
 ACCEPTED_FRAME_EVENTS = frozenset(
-    {"frame_time_reset", "frame_sequence_reset", "frame_stream_restart", "frame_encoding_changed"}
+    {"frame_time_reset", "frame_sequence_reset", "frame_stream_restart", "frame_encoding_changed", "frame_zoom_invalid"}
 )
+#: the warning code a frame's own zoom withholds its geometry under (module docstring, step 1)
+ZOOM_MISMATCH = "zoom_mismatch"
 
 
 class FrameRejected(InputError):
@@ -275,11 +291,14 @@ class FramePipeline:
         self.clock_apart_s: float | None = None
         self._encoding: int | None = None  # the last accepted frame's (an IrFrame encoding code)
         self._last_taken: IrFrame | None = None  # the last accepted frame: a resend of it is compared pixel by pixel
-        #: warnings (``gimbal_mismatch``, ``camera_mismatch``) that withhold the line of sight and the 3-D position
-        #: (the daemon sets them from its watchdog); the image fields still go out.  Set by another thread: read once
-        #: per frame.
-        self.withheld_because: tuple[str, ...] = ()
+        # the warnings the daemon withholds the geometry for (withheld_because's setter); another thread sets them
+        self._withheld_by_daemon: tuple[str, ...] = ()
         self._was_withheld = False
+        #: the zoom the last frame taken stated (IRF1's field, relative to the calibrated one); None: not stated
+        self.last_zoom: float | None = None
+        self._zoom_off = False  # the last frame taken stated a zoom camera.intrinsics are not for
+        #: frames whose line of sight and 3-D position were withheld for their stated zoom
+        self.frames_withheld_zoom = 0
         self._last_p_cam_ned_m: np.ndarray | None = None  # the newest frame's camera, for a frame without a pose
         ec = config.estimator
         # a pose whose position is dead-reckoned beyond the camera-position noise the window assumes coasts
@@ -307,6 +326,20 @@ class FramePipeline:
         self.last_selection: dict[str, Any] | None = None  # the last operator request decided: kind, accepted, reason
 
     # ------------------------------------------------------------------ public
+
+    @property
+    def withheld_because(self) -> tuple[str, ...]:
+        """The warnings that withhold the line of sight and the 3-D position now (the image fields still go out):
+        those the daemon sets from its watchdog (``gimbal_mismatch``, ``camera_mismatch``), then
+        :data:`ZOOM_MISMATCH` while the last frame taken states a zoom the intrinsics are not for (decided here,
+        frame by frame).  Read once per frame: another thread sets it."""
+        daemon = self._withheld_by_daemon
+        return (*daemon, ZOOM_MISMATCH) if self._zoom_off else daemon
+
+    @withheld_because.setter
+    def withheld_because(self, codes: tuple[str, ...]) -> None:
+        # the zoom is the frames' to say: a caller handing back what it read must not pin it past them
+        self._withheld_by_daemon = tuple(c for c in codes if c != ZOOM_MISMATCH)
 
     def reset(self) -> None:
         """Forget the stream (sequence/time), the track and the estimate; counters continue."""
@@ -434,6 +467,7 @@ class FramePipeline:
                 f"{K.width_px} x {K.height_px} (camera.intrinsics)",
             )
         self._admit(frame)
+        self._follow_zoom(frame)
         # while the stream's clock stands apart from the telemetry's, no pose: none is waited for or looked up
         apart_us = self._admission.apart_us
         self.clock_apart_s = None if apart_us is None else apart_us / US_PER_S
@@ -512,8 +546,12 @@ class FramePipeline:
         self.last_position_age_s = self._position_age_s(pose)
         self._follow_compensation()
         e0 = self._clock_ns()
-        est = self._estimate(upd, pose, t_us)
-        self._time_offset_add(upd, stamp_pose, est, t_us)
+        est = None
+        if not self._zoom_off:
+            # a zoomed frame's bearing, made with the calibrated focal length, is off by the zoom's ratio: unlike a
+            # camera_mismatch (whose residuals are what clears it) nothing needs it, and it would bend both estimates
+            est = self._estimate(upd, pose, t_us)
+            self._time_offset_add(upd, stamp_pose, est, t_us)
         self.estimator_ms.add((self._clock_ns() - e0) / 1e6)
         track = self._track(frame, upd, state, pose, est)
         self.last_track = track
@@ -585,6 +623,20 @@ class FramePipeline:
             self._reset_estimator(verdict.reason.replace("_", " "))
             if self.time_offset is not None:  # a clock step or a restarted camera: its offset may have changed
                 self.time_offset.reset()
+
+    def _follow_zoom(self, frame: IrFrame) -> None:
+        """Take the zoom a frame states (module docstring, step 1): withhold its geometry when the intrinsics are
+        not for it; a zoom field no zoom can hold is counted and read as not stated."""
+        if frame.zoom_invalid:
+            self.counter.count(
+                "frame_zoom_invalid",
+                f"frame seq {frame.seq} states a zoom of {frame.zoom!r}, which no zoom can be: taken as not stated "
+                "(the frame is tracked as before the field); check the sender's IRF1 header, offset 28 (float32)",
+            )
+        self.last_zoom = frame.stated_zoom
+        self._zoom_off = zoom_off_calibration(self.last_zoom)
+        if self._zoom_off:
+            self.frames_withheld_zoom += 1
 
     # ------------------------------------------------------------------ estimation
 

@@ -851,6 +851,48 @@ def test_a_gimbal_under_a_fixed_mount_withholds_the_very_next_frames_direction()
     assert "gimbal_mismatch" in [w.code for w in svc.watchdog.active]
 
 
+def test_frames_stating_a_2x_zoom_withhold_direction_and_position_from_the_first_and_the_status_says_so(caplog):
+    """IRF1's zoom field through the daemon's own frame path (decode, _process, watchdog, status): a P1-like
+    sequence whose frames state 2x from frame 10 to 19 and 1.0 again after."""
+    import dataclasses
+
+    from onboard.core.irframe import encode_irframe
+    from tests.onboard.test_pipeline import FakeEstimator
+
+    scene = SyntheticScene()
+    o = scene.origin
+    origin = {"lat_deg": o.lat_deg, "lon_deg": o.lon_deg, "alt_m": o.alt_m}
+    svc, clock = _quiet_service({"imaging": {"chain": "single"}, "pose": {"wait_ms": 0, "origin": origin}})
+    svc.pipeline.estimator = FakeEstimator(scene, ready_after=3)  # the true target: positions from frame 3
+    fed_us = scene.t_us(0) - 100_000
+    tracks, statuses = [], []
+    with caplog.at_level(logging.INFO, logger="onboard.app.watchdog"):
+        for k in range(30):
+            t_hi = scene.t_us(k) + 45_000
+            for t, p, v, q in scene.telemetry(fed_us + 1, t_hi, 50.0):
+                svc.pose.add_attitude(t, q)
+                svc.pose.add_position_ned(t, p, v)
+            fed_us = t_hi
+            clock.t_s += 1 / 30
+            payload = encode_irframe(dataclasses.replace(scene.frame(k), zoom=2.0 if 10 <= k < 20 else 1.0))
+            tracks.append(svc._process(decode_irframe(payload), clock.ns()))
+            statuses.append(svc.status(clock())["geometry"])
+    assert all(tr.los is not None for tr in tracks[:10]) and tracks[9].has_position
+    assert all(tr.los is None and not tr.has_position and tr.u_px is not None for tr in tracks[10:20])
+    assert all(tr.los is not None for tr in tracks[20:]) and tracks[-1].has_position
+    assert statuses[9] == {"output": "published", "withheld_because": [], "zoom": 1.0, "frames_withheld_zoom": 0}
+    assert statuses[10] == {
+        "output": "withheld",
+        "withheld_because": ["zoom_mismatch"],
+        "zoom": 2.0,
+        "frames_withheld_zoom": 1,
+    }
+    assert statuses[-1] == {"output": "published", "withheld_because": [], "zoom": 1.0, "frames_withheld_zoom": 10}
+    warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING and r.name.endswith("watchdog")]
+    assert len(warned) == 1 and warned[0].startswith("zoom_mismatch: IR frames state a zoom of 2x")
+    assert svc.status(clock())["warnings"] == []  # cleared by the frames back at 1.0
+
+
 def test_service_warns_once_about_no_frames_and_no_mavlink_naming_what_to_check(caplog):
     svc, clock = _quiet_service()
     svc.watchdog.restart(clock())

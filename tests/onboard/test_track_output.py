@@ -186,9 +186,79 @@ def test_while_the_camera_mismatches_no_direction_or_position_goes_out_and_the_r
 
 def test_the_status_says_whether_geometry_is_withheld_and_why():
     kw = dict(frames_in=1, frames_processed=1, tracks_published=1, estimator="inline")
-    assert idle_status(**kw)["geometry"] == {"output": "published", "withheld_because": []}
+    unzoomed = {"zoom": None, "frames_withheld_zoom": 0}
+    assert idle_status(**kw)["geometry"] == {"output": "published", "withheld_because": [], **unzoomed}
     got = idle_status(**kw, withheld_because=("gimbal_mismatch",))["geometry"]
-    assert got == {"output": "withheld", "withheld_because": ["gimbal_mismatch"]}
+    assert got == {"output": "withheld", "withheld_because": ["gimbal_mismatch"], **unzoomed}
+    got = idle_status(**kw, withheld_because=("zoom_mismatch",), zoom=2.0, frames_withheld_zoom=7)["geometry"]
+    assert got == {"output": "withheld", "withheld_because": ["zoom_mismatch"], "zoom": 2.0, "frames_withheld_zoom": 7}
+
+
+ZOOM_FROM, ZOOM_UNTIL = 20, 40  # frames stating 2x: [ZOOM_FROM, ZOOM_UNTIL)
+
+
+def test_frames_stating_another_zoom_withhold_direction_and_position_from_the_first_and_not_the_2d_track(caplog):
+    """IRF1's zoom field: 2x from frame 20 on (P1-like scene, the daemon's order: the watchdog's warnings set the
+    pipeline, then the frame, then the watchdog is fed).  The frame that first states it already goes out without
+    a line of sight or a position, the 2-D track goes on, no row reaches the estimator, the warning is raised once
+    naming the zoom, and the first frame back at 1.0 is published again from a fresh window."""
+    rig = Rig(ready_after=3)
+    wd = Watchdog(
+        started_s=0.0, frame_key="k", zenoh_where="peer", mavlink_connection="udpin:x", camera_size_px=(640, 512)
+    )
+    tracks, active = [], []
+    with caplog.at_level(logging.INFO, logger="onboard.app.watchdog"):
+        for k in range(ZOOM_UNTIL + 10):
+            rig.pipe.withheld_because = tuple(w.code for w in wd.active if w.code in MISMATCH_WARNINGS)
+            zoom = 2.0 if ZOOM_FROM <= k < ZOOM_UNTIL else 1.0
+            rig.feed_until(rig.scene.t_us(k) + 45_000)
+            adds = sum(c == "add" for c, _ in rig.est.calls)
+            tr = rig.pipe.process(dataclasses.replace(rig.scene.frame(k), zoom=zoom), 0)
+            added = sum(c == "add" for c, _ in rig.est.calls) - adds
+            wd.zoom((tr.time_boot_us - rig.scene.boot_us0) / 1e6, rig.pipe.last_zoom)
+            tracks.append((tr, added, rig.pipe.withheld_because))
+            active.append([w.code for w in wd.active])
+    before, zoomed, after = tracks[:ZOOM_FROM], tracks[ZOOM_FROM:ZOOM_UNTIL], tracks[ZOOM_UNTIL:]
+    assert all(tr.los is not None and added == 1 for tr, added, _ in before) and before[-1][0].has_position
+    for tr, added, why in zoomed:
+        assert tr.los is None and not tr.has_position and tr.pose_valid and why == ("zoom_mismatch",)
+        assert tr.u_px is not None and tr.measurement_valid  # the image chain is zoom-agnostic: tracked on
+        assert added == 0  # no ray made with the wrong focal length reaches the estimator
+    assert active[ZOOM_FROM - 1] == [] and all(a == ["zoom_mismatch"] for a in active[ZOOM_FROM:ZOOM_UNTIL])
+    assert all(a == [] for a in active[ZOOM_UNTIL:])
+    assert rig.pipe.frames_withheld_zoom == ZOOM_UNTIL - ZOOM_FROM and rig.pipe.last_zoom == 1.0
+    assert all(tr.los is not None and why == () for tr, _, why in after)
+    assert sum(c == "reset" for c, _ in rig.est.calls) == 1  # back at 1.0: a fresh window, as a cleared mismatch
+    assert after[-1][0].has_position
+    warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING and r.name.endswith("watchdog")]
+    assert len(warned) == 1 and warned[0].startswith("zoom_mismatch: ")
+    for words in ("2x", "camera.intrinsics are for 1.0x", "set the camera's zoom back", "calibrate"):
+        assert words in warned[0], words
+    assert any(r.getMessage() == "zoom_mismatch cleared" for r in caplog.records)
+
+
+@pytest.mark.parametrize("zoom", [0.0, 1.0, 1.004])
+def test_frames_stating_no_zoom_or_the_calibrated_one_are_published_as_before(zoom):
+    rig = Rig(ready_after=3)
+    tracks = []
+    for k in range(8):
+        rig.feed_until(rig.scene.t_us(k) + 45_000)
+        tracks.append(rig.pipe.process(dataclasses.replace(rig.scene.frame(k), zoom=zoom), 0))
+    assert all(tr.los is not None for tr in tracks) and tracks[-1].has_position
+    assert rig.pipe.withheld_because == () and rig.pipe.frames_withheld_zoom == 0
+    assert rig.pipe.last_zoom == (None if zoom == 0.0 else pytest.approx(zoom))
+
+
+@pytest.mark.parametrize("zoom", [math.nan, -1.0, math.inf])
+def test_a_zoom_no_zoom_can_be_is_counted_and_read_as_not_stated_and_tracking_goes_on(zoom):
+    rig = Rig(ready_after=3)
+    tracks = []
+    for k in range(8):
+        rig.feed_until(rig.scene.t_us(k) + 45_000)
+        tracks.append(rig.pipe.process(dataclasses.replace(rig.scene.frame(k), zoom=zoom), 0))
+    assert all(tr.los is not None for tr in tracks) and tracks[-1].has_position
+    assert rig.pipe.last_zoom is None and rig.pipe.withheld_because == () and rig.pipe.frames_processed == 8
+    assert rig.counter["frame_zoom_invalid"] == 8
 
 
 def test_utc_time_round_trips_and_is_null_until_known():
