@@ -8,7 +8,7 @@ MAVLink telemetry (:mod:`groundsim.io.mavlink_vehicle`), IR frames on zenoh
 The simulated world -- ticks, frames, the pair flight, navigation errors, truth rows, determinism --
 is :class:`groundsim.world.sim.SimCore`; this loop feeds its ticks to the MAVLink vehicle (its own
 schedule picks #31 at 50 Hz, #33 at 25 Hz, #285 at 10 Hz, HEARTBEAT and SYSTEM_TIME at 1 Hz, and answers
-TIMESYNC/commands) and publishes its frames as ``IrFrame(seq=k, time_boot_us)``, each with its truth row.
+TIMESYNC/commands) and publishes its frames as ``IrFrame(seq=k, time_boot_us)`` (stating zoom 1.0: ``CAMERA_ZOOM``), each with its truth row.
 JSBSim flies a chunk of whole frames at a time (``PACED_CHUNK_S`` when paced, ``MAX_MODE_CHUNK_S`` at
 ``--rate max``); chunking does not change the flight.
 
@@ -55,6 +55,7 @@ from groundsim.world.nav_errors import InjectedErrors
 from groundsim.world.scenario import Scenario
 from groundsim.world.sim import (
     BOOT_START_US,
+    CAMERA_ZOOM,
     SimCore,
     ThrottledErrorLog,
     check_duration_s,
@@ -615,7 +616,7 @@ def run_fleet_loop(
                             if camera_clock is not None:
                                 stamp = camera_clock.stamp_us(frame.time_boot_us, frame.truth.t_s)
                             if stamp is not None:  # None: the camera clock puts it before boot, not sent
-                                leg.publisher.publish(IrFrame(frame.seq, stamp, frame.pixels))
+                                leg.publisher.publish(IrFrame(frame.seq, stamp, frame.pixels, zoom=CAMERA_ZOOM))
                                 published += 1
                         except sink_errors as exc:
                             publish_errors(f"frame {frame.seq}: publish{' ' + leg.name if fleet else ''}", exc)

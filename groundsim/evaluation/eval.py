@@ -382,7 +382,7 @@ def run_lockstep(
     """
     from groundsim.evaluation.lockstep_guidance import LockstepGuidance
     from groundsim.evaluation.mot import PerceptionScore, gt_rows, tracker_positions, tracker_rows, unscorable_objects
-    from groundsim.world.sim import SimCore
+    from groundsim.world.sim import CAMERA_ZOOM, SimCore
     from onboard.core.irframe import IrFrame
     from onboard.core.pose import PoseBuffer
     from onboard.io.record import RecordingPoseSource
@@ -505,7 +505,7 @@ def run_lockstep(
             else:
                 took_frame = True
                 try:
-                    track = pipeline.process(IrFrame(fr.seq, stamp, fr.pixels))
+                    track = pipeline.process(IrFrame(fr.seq, stamp, fr.pixels, zoom=CAMERA_ZOOM))
                 except FrameRejected as exc:  # counted by the pipeline; the frame has no track
                     rejected += 1
                     log.debug("frame %d rejected: %s", k, exc)

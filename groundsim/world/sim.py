@@ -90,6 +90,7 @@ if TYPE_CHECKING:  # imported where first used: JSBSim and the renderer load onl
 
 __all__ = [
     "BOOT_START_US",
+    "CAMERA_ZOOM",
     "MIN_POLL_RATE_HZ",
     "GROUND_D_M",
     "EXTENSIBLE_MOTIONS",
@@ -106,6 +107,9 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 BOOT_START_US = 1_000_000  # the boot clock reads 1 s at t_s = 0
+#: the zoom the simulated camera's frames state (IRF1's zoom field): it has a fixed lens and renders with the
+#: scenario's intrinsics, the ones the daemon is configured with (groundsim demo), so always the calibrated one
+CAMERA_ZOOM = 1.0
 MIN_POLL_RATE_HZ = 100.0  # MAVLink is polled at least this often in simulated time
 GROUND_D_M = 0.0  # flat ground at the scenario origin's height (the scenarios' origin is on the ground)
 DURATION_EPS_S = 1e-9  # a duration this close to the scenario's is the scenario's

@@ -185,6 +185,7 @@ def test_frames_have_valid_headers_monotonic_seq_and_30hz_stamps(e2e):
     assert seqs == sorted(set(seqs)) and seqs[0] < 6 and seqs[-1] < E2E_FRAMES
     for f in frames:
         assert (f.width_px, f.height_px, f.encoding) == (640, 512, ENCODING_MONO8)
+        assert f.stated_zoom == 1.0  # the simulated camera's fixed lens, as calibrated (IRF1's zoom field)
         expected_us = BOOT_START_US + f.seq * 1e6 / FRAME_RATE_HZ
         assert abs(f.time_boot_us - expected_us) <= STAMP_TOL_US
     gaps_us = np.diff([f.time_boot_us for f in frames]) / np.diff(seqs)
