@@ -80,6 +80,7 @@ single_thread_blas_env()  # the replayed pipeline is single-threaded like the da
 
 import argparse  # noqa: E402
 import collections  # noqa: E402
+import dataclasses  # noqa: E402
 import json  # noqa: E402
 import logging  # noqa: E402
 import math  # noqa: E402
@@ -519,7 +520,9 @@ def _frames_taken(rec: Recording) -> Iterator[tuple[int, dict, Any]]:
             continue
         used[key] = k + 1
         ref, _rx_ns = cands[k]
-        yield i, inp, irframe_from_rawimage(key[0], ref.raw_image(), f"{ref.path}: frame seq {key[0]}")
+        frame = irframe_from_rawimage(key[0], ref.raw_image(), f"{ref.path}: frame seq {key[0]}")
+        zoom = inp.get("zoom")  # the RawImage cannot carry IRF1's zoom: frame_input does (absent: not stated)
+        yield i, inp, frame if zoom is None else dataclasses.replace(frame, zoom=float(zoom))
 
 
 class _TappedTracker:

@@ -171,6 +171,11 @@ JSON_SCHEMAS: dict[str, dict[str, Any]] = {
                 "received_ns": {"type": "integer"},
                 "pose_looked_up": {"type": "boolean"},
                 "pose": _POSE,
+                "zoom": {
+                    "type": ["number", "null"],
+                    "description": "the frame's IRF1 zoom field (relative to the calibrated zoom; 0: not stated; null: "
+                    "not finite); absent before the field",
+                },
             },
             ["seq", "time_boot_us", "received_ns", "pose_looked_up", "pose"],
         ),

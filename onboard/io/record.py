@@ -41,7 +41,9 @@ topic                             schema                         encoding       
   or ``mono16`` (little-endian), ``step`` = width x bytes per pixel; the MCAP message's ``sequence`` is
   the frame's ``seq``.
 * ``irtrack.frame_input/1``: ``{"seq", "time_boot_us", "received_ns", "pose_looked_up": bool,
-  "pose": null | PoseAt}``: a frame the pipeline thread took from its queue (in that order), and the
+  "pose": null | PoseAt, "zoom": number | null}``: a frame the pipeline thread took from its queue (in that order),
+  the zoom its IRF1 header stated (the RawImage has no field for it; 0 not stated, null a value JSON cannot hold,
+  which the daemon read as not stated too; absent in recordings made before the field), and the
   interpolated pose it got (:func:`~onboard.io.pose_json.pose_to_json`; floats printed by ``repr``, so they read
   back bit for bit).  A frame received but never taken was dropped by the queue.  :mod:`onboard.app.replay` feeds
   these frames with these poses through a new :class:`~onboard.pipeline.frame_pipeline.FramePipeline`.
@@ -430,7 +432,7 @@ class FlightRecorder:
             "frame_input",
             FRAME_INPUT_TOPIC,
             700,
-            (int(frame.time_boot_us), int(received_ns), bool(pose_looked_up), pose),
+            (int(frame.time_boot_us), int(received_ns), bool(pose_looked_up), pose, float(frame.zoom)),
             seq=seq,
         )
         if imaging_pose is not NOT_LOOKED_UP:
@@ -876,13 +878,14 @@ class FlightRecorder:
                 topic, "foxglove.RawImage", rawimage_pieces(frame, self._protobuf()["foxglove.RawImage"]), now, seq
             )
         elif kind == "frame_input":
-            t_us, received_ns, looked_up, pose = item
+            t_us, received_ns, looked_up, pose, zoom = item
             obj = {
                 "seq": seq,  # the frame's, which is the message's sequence
                 "time_boot_us": t_us,
                 "received_ns": received_ns,
                 "pose_looked_up": looked_up,
                 "pose": pose_to_json(pose),
+                "zoom": zoom if math.isfinite(zoom) else None,  # NaN and inf: JSON has none
             }
             self._add_json(topic, FRAME_INPUT_SCHEMA, obj, now, seq)
             if pose is not None:

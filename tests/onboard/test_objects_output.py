@@ -33,9 +33,9 @@ TELEMETRY_LATE_US = 30_000  # the telemetry before the wait ends this long befor
 TELEMETRY_AFTER_WAIT_US = 45_000
 
 
-def _record(path, n: int = N_FRAMES):
+def _record(path, n: int = N_FRAMES, zoom_of=lambda k: 0.0):
     """The service's frame loop over a synthetic scene with the objects chain and a recorder tap (no sockets):
-    (config, the objects messages the frames gave, tracks)."""
+    (config, the objects messages the frames gave, tracks).  ``zoom_of(k)``: the zoom frame ``k`` states (IRF1)."""
     config = build_config(
         {"imaging": {"chain": "objects"}, "estimator": {"enabled": False}, "record": {"path": str(path)}}
     )
@@ -55,7 +55,7 @@ def _record(path, n: int = N_FRAMES):
             px = frame.pixels.copy()
             u, v = STATIC_UV
             px[v : v + 2, u : u + 2] = np.minimum(px[v : v + 2, u : u + 2].astype(int) + 60, 255)
-            frame = dataclasses.replace(frame, pixels=px)
+            frame = dataclasses.replace(frame, pixels=px, zoom=zoom_of(k))
             rx_ns = 1_000_000_000 + k * 33_000_000
             tap.on_received(frame, rx_ns)
             track = rig.pipe.process(frame, rx_ns)
@@ -134,6 +134,22 @@ def test_replay_reads_the_objects_back_and_makes_the_same_ones(recorded):
     assert sum(len(v) for v in rec.imaging_poses.values()) == N_FRAMES
     alone = replay(dataclasses.replace(load_recording(str(path)), imaging_poses={}), config_of(rec))
     assert compare_objects(rec.objects, alone.objects)[1] < N_FRAMES
+
+
+def test_a_replay_states_each_frames_recorded_zoom_and_withholds_the_same_lines_of_sight(tmp_path):
+    """The recording keeps the frame as a foxglove.RawImage, which has no zoom: frame_input carries IRF1's zoom, so a
+    replay of frames that stated 2x withholds their lines of sight as the flight did (it published them all)."""
+    from onboard.app.replay import config_of, load_recording, replay
+
+    zoomed = range(20, 30)
+    path = tmp_path / "zoomed.mcap"
+    _, _, tracks = _record(path, zoom_of=lambda k: 2.0 if k in zoomed else 1.0)
+    rec = load_recording(str(path))
+    assert [inp["zoom"] for inp in rec.inputs] == [2.0 if k in zoomed else 1.0 for k in range(N_FRAMES)]
+    flown = [tr.los is not None for tr in tracks]
+    assert not any(flown[k] for k in zoomed) and any(flown[: zoomed.start]) and any(flown[zoomed.stop :])
+    res = replay(rec, config_of(rec))
+    assert [t["los_ned"] is not None for t in res.tracks] == flown
 
 
 def test_annotations_draw_small_boxes_at_least_min_size_and_truth_labels():
