@@ -98,6 +98,26 @@ def test_frame_size_mismatch_names_both_sizes_once(caplog):
     assert wd.active == ()
 
 
+def test_a_stated_zoom_off_the_calibrated_one_is_warned_once_naming_it_and_cleared_by_frames_back_at_one(caplog):
+    wd = _wd()
+    with caplog.at_level(logging.INFO, logger="onboard.app.watchdog"):
+        for i, zoom in enumerate([None, 1.0, 1.004]):  # not stated, calibrated, within 0.5 %: nothing
+            wd.zoom(100.0 + i, zoom)
+        assert wd.active == ()
+        for i in range(10):
+            wd.zoom(110.0 + i, 2.0)
+        wd.zoom(121.0, 3.0)  # zoomed further: the message follows, no second WARNING
+        assert [w.code for w in wd.active] == ["zoom_mismatch"] and "a zoom of 3x" in wd.active[0].message
+        wd.zoom(122.0, 1.0)
+        assert wd.active == ()
+        wd.zoom(123.0, 0.5)  # zoomed out: raised again, logged at INFO only
+        wd.zoom(124.0, None)  # a sender that stops stating it: taken as calibrated, as before the field
+        assert wd.active == ()
+    msgs = _warnings(caplog)
+    assert len(msgs) == 1 and msgs[0].startswith("zoom_mismatch: IR frames state a zoom of 2x")
+    assert "camera.intrinsics are for 1.0x" in msgs[0] and "set the camera's zoom back to 1.0" in msgs[0]
+
+
 @pytest.mark.parametrize(
     "values, warned",
     [
