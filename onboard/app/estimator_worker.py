@@ -50,7 +50,7 @@ from onboard.app.estimator_wire import (
 )
 from onboard.app.os_thread import name_os_thread
 from onboard.core.counters import RejectCounter
-from onboard.core.errors import InputError
+from onboard.core.errors import InputError, IrtrackError
 from onboard.estimation.map_estimator import MapConfig
 from onboard.estimation.sliding import (
     SlidingWindowEstimator,
@@ -63,6 +63,7 @@ from onboard.pipeline.frame_pipeline import make_estimator
 
 __all__ = [
     "ESTIMATE_QUEUE_MAX",
+    "EstimatorStartError",
     "as_observation",
     "SNAPSHOT_PERIOD_S",
     "FORKSERVER_PRELOAD",
@@ -81,6 +82,11 @@ FORKSERVER_PRELOAD = ["onboard.app.main", "onboard.app.estimator_worker", "onboa
 # observation time between two snapshots of the worker's state sent to the parent: a snapshot costs the
 # worker a few milliseconds, so one a second would take a noticeable share of the daemon's CPU budget
 SNAPSHOT_PERIOD_S = 5.0
+
+
+class EstimatorStartError(IrtrackError):
+    """The estimator's first worker process could not be started (its fork server failed): the daemon ends on it,
+    with exit code 1, as when it waited for that worker before serving."""
 
 
 class _Carried:
@@ -403,6 +409,13 @@ class ProcessEstimator(_Carried):
     server gone with the worker (it then imports the estimator's modules again: a second or more) never holds the
     frames; a frame waits for it no longer than for its estimate (``result_wait_s``).
 
+    **The first worker** is spawned on a thread too, from the constructor: its fork server imports the estimator's
+    modules (a second or more) while the daemon opens its links, instead of before it serves.  The frames that come
+    first are kept for it and carried, as for a replacement, and the first frame after it is there takes it.  A first
+    worker that cannot be started is counted (``estimator_error``) on the next frame and :attr:`start_error` says
+    why: the daemon ends on it (:class:`EstimatorStartError`), as it did when the constructor raised it.
+    :meth:`close` during that start stops the fork server, which would otherwise outlive the daemon.
+
     **A worker that hangs** (alive, answering nothing: stopped, deadlocked, spinning) would let the pipe to it fill
     and the next row's write block the frame loop: a worker sent rows it has not answered for ``HUNG_S`` is killed
     (counted ``estimator_hung``) and replaced as a dead one.  No selection or rebuild comes near it; a CPU quota
@@ -458,13 +471,24 @@ class ProcessEstimator(_Carried):
         self._started_s = -math.inf
         self._proc: BaseProcess | None = None
         self._conn: Connection | None = None
-        self._starting: _WorkerStart | None = None  # a replacement being spawned
-        self._start()
+        # what _adopt sets for each worker, as it stands before the first one (silent_s, the hang check)
+        self._out = bytearray()
+        self._intrinsics_sent: list = []
+        self._answered = False
+        self._unanswered_since_s: float | None = None
+        self._starting: _WorkerStart | None = None  # a worker being spawned: the first, or a replacement
+        self._first_start = self._begin_start()  # for start_error
 
     @property
     def pid(self) -> int | None:
-        """The worker's process id (None while there is none)."""
+        """The worker's process id (None while there is none: before the first frame takes the first worker too)."""
         return None if self._proc is None else self._proc.pid
+
+    @property
+    def start_error(self) -> Exception | None:
+        """Why the first worker could not be started (None: it started, or is still starting).  Read by another thread
+        than the frames' (the daemon's main loop): the start's outcome, set once by its own thread."""
+        return self._first_start.error
 
     def _spawn(self) -> tuple[BaseProcess, Connection]:
         """A new worker process and the parent's end of its pipe.  Blocks until the fork server has forked it:
@@ -484,10 +508,18 @@ class ProcessEstimator(_Carried):
             child.close()
         return proc, parent
 
-    def _begin_start(self) -> None:
-        """Spawn a replacement worker on a thread: the frame loop goes on (carried estimates) while a fork server
-        that died with the worker is started again, and adopts the worker when it is there (:meth:`_adopt_started`)."""
-        self._starting = _WorkerStart(self._spawn, self._clock())
+    def _begin_start(self) -> _WorkerStart:
+        """Spawn a worker on a thread (the first one, or a replacement): the frame loop goes on (carried estimates)
+        while its fork server starts (the first one, or one that died with the worker), and adopts the worker when it
+        is there (:meth:`_adopt_started`).  The fork server is launched here (milliseconds: it then imports its
+        preload for a second or more, by itself), not by the thread: a :meth:`close` right after finds it and stops it,
+        whatever the thread has reached."""
+        try:
+            _start_fork_server()
+        except Exception:  # noqa: BLE001 - the thread's spawn tries it again, and what fails there is counted
+            pass
+        self._starting = start = _WorkerStart(self._spawn, self._clock())
+        return start
 
     def _adopt_started(self, wait_s: float) -> bool:
         """Take the worker :meth:`_begin_start` spawned, waiting up to ``wait_s`` for it; False while it is not
@@ -511,9 +543,6 @@ class ProcessEstimator(_Carried):
         self._adopt(*start.worker)
         return True
 
-    def _start(self) -> None:
-        self._adopt(*self._spawn())
-
     def _adopt(self, proc: BaseProcess, parent: Connection) -> None:
         self._proc = proc
         self._conn = parent
@@ -521,7 +550,7 @@ class ProcessEstimator(_Carried):
         # replacement's snapshot, near a megabyte, would otherwise hold the frame loop for the new worker's start)
         os.set_blocking(parent.fileno(), False)
         self._out = bytearray()  # bytes for this worker the pipe has not taken yet (_send)
-        self._intrinsics_sent: list = []  # the camera models this worker has, by index (_intrinsics_index)
+        self._intrinsics_sent = []  # the camera models this worker has, by index (_intrinsics_index)
         # Connection.poll and Process.is_alive build a selector on every call (~7 and ~16 us, the pipeline
         # thread's two checks per frame): one poll object each, made once per worker
         self._answers = select.poll()
@@ -531,7 +560,7 @@ class ProcessEstimator(_Carried):
         self._cpu_base = self.worker_cpu_s
         self._started_s = self._clock()
         self._answered = False  # no result from this worker yet
-        self._unanswered_since_s: float | None = None  # the first row sent since the worker last answered
+        self._unanswered_since_s = None  # the first row sent since the worker last answered
 
     def _alive(self) -> bool:
         proc = self._proc
@@ -792,8 +821,10 @@ class ProcessEstimator(_Carried):
 
     def close(self, timeout_s: float = 1.0) -> None:
         starting, self._starting = self._starting, None
-        if starting is not None:  # a replacement being spawned: stopped with the rest, never left running
+        if starting is not None:  # a worker being spawned: stopped with the rest, never left running
             starting.thread.join(min(timeout_s / 2, 0.05))  # a start with the fork server up is milliseconds
+            if starting.thread.is_alive():
+                _stop_fork_server()  # still importing its preload: it would outlive this process
             worker = starting.close()
             if worker is not None:
                 if self._proc is None:
@@ -817,9 +848,9 @@ class ProcessEstimator(_Carried):
 
 
 class _WorkerStart:
-    """A replacement worker being spawned on a thread (:meth:`ProcessEstimator._begin_start`): ``worker`` once it
-    is there, ``error`` when it could not be started.  :meth:`close` and the thread hand over under a lock, so that a
-    worker made after the estimator closed is stopped by the thread itself, not left running."""
+    """A worker (the first, or a replacement) being spawned on a thread (:meth:`ProcessEstimator._begin_start`):
+    ``worker`` once it is there, ``error`` when it could not be started.  :meth:`close` and the thread hand over under a
+    lock, so that a worker made after the estimator closed is stopped by the thread itself, not left running."""
 
     def __init__(self, spawn: Callable[[], tuple[BaseProcess, Connection]], since_s: float) -> None:
         self.since_s = since_s
@@ -850,6 +881,20 @@ class _WorkerStart:
         with self._lock:
             self._closed = True
             return self.worker
+
+
+def _stop_fork_server() -> None:
+    """SIGKILL the workers' fork server (if any).  One that is still importing its preload reads neither its pipe
+    from this process nor SIGINT (blocked: :func:`_start_fork_server`) until that is done, a second or more: a daemon
+    stopped meanwhile left it running past its own exit, holding the daemon's stderr open, and it then forked a worker
+    for the gone daemon.  multiprocessing reaps it, and starts another, when a worker is next spawned.  Every :class:`ProcessEstimator` of this process shares it: one closed while another spawns makes
+    that spawn fail (counted, tried again after the back-off)."""
+    from multiprocessing import forkserver
+
+    pid = getattr(forkserver._forkserver, "_forkserver_pid", None)  # private: the stdlib has no public stop
+    if pid is not None:
+        with contextlib.suppress(ProcessLookupError, PermissionError):
+            os.kill(pid, signal.SIGKILL)
 
 
 def _stop_unadopted(proc: BaseProcess, conn: Connection) -> None:

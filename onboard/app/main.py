@@ -16,7 +16,8 @@ folder or a file with content, or in a folder where no file can be made), its ``
 
 Exit codes: 0 clean shutdown (SIGTERM / SIGINT / SIGHUP; Ctrl-C too, even while starting, without a
 traceback) or successful ``--check``; 2 invalid configuration or options, or a zenoh session that cannot
-open (port in use ...), printed as one line on stderr; 1 an unexpected error.
+open (port in use ...), printed as one line on stderr; 1 an unexpected error, or an estimator worker process that
+could not be started (logged in one line, once its fork server has failed).
 """
 
 from __future__ import annotations
@@ -342,8 +343,14 @@ def _serve(args: argparse.Namespace, stop: _StopSignals) -> int:
     # what start-up made (modules, config, sessions, the estimator's copy) lives as long as the daemon: out of the
     # collector's generations, so that its full collections walk only what the frames make
     gc.freeze()
+    from onboard.app.estimator_worker import EstimatorStartError
+
     try:
         service.run()
+    except EstimatorStartError as exc:  # spawned while the daemon started: one line, as a start that fails
+        log.error("%s", exc)
+        service.close(0.5, stop.deadline_s)
+        return EXIT_ERROR
     except Exception:  # noqa: BLE001 - log, close, non-zero exit
         log.exception("onboard service failed")
         service.close(0.5, stop.deadline_s)

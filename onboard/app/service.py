@@ -24,7 +24,10 @@ Threads (nothing else runs concurrently):
 * **estimator worker** (``estimator.worker``, :mod:`onboard.app.estimator_worker`): ``process``
   (default) runs the sliding-window estimator in a child process, ``thread`` in a thread, ``inline``
   in the pipeline thread.  A frame waits up to ``estimator.result_wait_ms`` for its own estimate, past
-  that it gets the newest estimate propagated to its time; a worker process that dies is replaced.
+  that it gets the newest estimate propagated to its time; a worker process that dies is replaced.  The first
+  worker process is spawned while the daemon starts (its fork server imports for a second or more), not before it
+  serves; one that cannot be started ends the daemon (:meth:`OnboardService.run` raises
+  :class:`~onboard.app.estimator_worker.EstimatorStartError`).
 * **main thread**: woken by MAVLink input and by its own timers (at most ``mavlink.poll_rate_hz`` turns a
   second, :meth:`OnboardService._idle`): :meth:`MavlinkLink.poll` /
   :meth:`MavlinkLink.tick` (the autopilot link, component 191: heartbeat, rate requests, TIMESYNC);
@@ -63,7 +66,12 @@ from typing import TYPE_CHECKING, Any
 from onboard.app.components import make_camera_protocol, zenoh_unreachable_hint, zenoh_where
 from onboard.app.config import OnboardConfig
 from onboard.app.cpu_load import CpuLoad
-from onboard.app.estimator_worker import ProcessEstimator, ThreadedEstimator, make_estimator_worker
+from onboard.app.estimator_worker import (
+    EstimatorStartError,
+    ProcessEstimator,
+    ThreadedEstimator,
+    make_estimator_worker,
+)
 from onboard.app.frame_queue import FrameQueue, arrived_bunched
 from onboard.app.locked_counter import LockedCounter
 from onboard.app.observers import (
@@ -598,6 +606,7 @@ class OnboardService:
             except Exception as exc:  # noqa: BLE001 - the camera component must not stop the loop
                 self.counter.count("camera_loop_error", f"{type(exc).__name__}: {exc}")
             if now >= next_watch:  # 5 s timeouts: 2 Hz is plenty, the loop itself turns at poll_rate_hz
+                self._check_estimator_start()
                 self._watch(now)
                 next_watch = now + WATCH_PERIOD_S
             try:
@@ -616,6 +625,14 @@ class OnboardService:
         # the counts as the run ends, on the status key: whoever watches it (a ground station, a demo stopping the
         # daemon) sees how the run ended, not the last periodic status up to an interval before it
         self._publish_status(self._clock(), last_cpu)
+
+    def _check_estimator_start(self) -> None:
+        """Raise :class:`EstimatorStartError` when the estimator's first worker process could not be started: it is
+        spawned while the daemon starts, not before (:class:`ProcessEstimator`), and a daemon whose estimator never ran
+        ends as it did when it waited for that worker, with exit code 1, rather than serve frames without 3-D."""
+        error = getattr(self.estimator, "start_error", None)
+        if error is not None:
+            raise EstimatorStartError(f"estimator process could not be started: {type(error).__name__}: {error}")
 
     def _idle(self, turn_s: float, period_s: float, next_own_s: float) -> None:
         """Sleep until MAVLink input arrives (the autopilot link, the camera component's endpoints) or the next

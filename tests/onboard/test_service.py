@@ -695,6 +695,95 @@ def test_ctrl_c_stops_the_daemon_cleanly_whenever_it_comes(daemon_env, when):
     assert "signal SIGINT while starting: stopped before serving" in err or "signal SIGINT: shutting down" in err, err
 
 
+def _group_members(pgid: int, word: str) -> set[int]:
+    """The live (not zombie) processes of process group ``pgid`` whose command line holds ``word``."""
+    found = set()
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rpartition(")")[2].split()
+            cmdline = (stat.parent / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:
+            continue
+        if int(fields[2]) == pgid and fields[0] != "Z" and word in cmdline:
+            found.add(int(stat.parent.name))
+    return found
+
+
+@pytest.mark.integration
+@pytest.mark.timeout(60)
+def test_sigterm_as_the_daemon_starts_serving_leaves_no_process_behind(daemon_env):
+    """The estimator's first worker is spawned while the daemon starts, its fork server still importing when the daemon
+    serves: a SIGTERM then stops the daemon cleanly, within its budget, and nothing of the daemon's runs on.  (A fork
+    server that serves takes 0.6-0.9 s of interpreter teardown after the daemon's exit, as it did before; one still
+    importing hears neither that exit nor a Ctrl-C until its imports are done: the daemon SIGKILLs it, which
+    tests/onboard/test_worker_restart.py checks where it would otherwise run on.)"""
+    proc = subprocess.Popen(
+        loopback_daemon_command(free_tcp_port(), "null"),
+        cwd=REPO,
+        env=daemon_env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,  # its own process group: what it leaves is found there
+    )
+    try:
+        assert proc.stderr is not None
+        for line in proc.stderr:
+            if "onboard service started" in line:
+                break
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(STOP_BUDGET_S + 5) == 0
+        t_end = time.monotonic() + STOP_BUDGET_S
+        while _group_members(proc.pid, "") and time.monotonic() < t_end:
+            time.sleep(0.05)
+        assert _group_members(proc.pid, "") == set()
+        err = proc.stderr.read()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(5)
+        for pid in _group_members(proc.pid, ""):
+            os.kill(pid, signal.SIGKILL)
+    assert "Traceback" not in err, err
+
+
+@pytest.mark.integration
+@pytest.mark.timeout(60)
+def test_a_daemon_whose_estimator_process_cannot_start_exits_1_in_one_line(tmp_path, daemon_env):
+    """An estimator worker process that cannot be started (here its fork server exits as it starts) ends the daemon
+    with exit code 1 and one line that says so, not a traceback: the worker is spawned while the daemon starts, and
+    its failure is found by the main loop (it raised from the service's constructor, unhandled, before)."""
+    (tmp_path / "sitecustomize.py").write_text(
+        "import os\n"
+        "with open('/proc/self/cmdline', 'rb') as f:\n"
+        "    if b'multiprocessing.forkserver import main' in f.read():\n"
+        "        os._exit(3)  # the fork server, as it starts\n"
+    )
+    env = {**daemon_env, "PYTHONPATH": os.pathsep.join([str(tmp_path), str(REPO), daemon_env.get("PYTHONPATH", "")])}
+    proc = subprocess.run(
+        loopback_daemon_command(free_tcp_port(), "null"), cwd=REPO, env=env, capture_output=True, text=True, timeout=60
+    )
+    assert proc.returncode == 1, proc.stderr
+    assert "Traceback" not in proc.stderr, proc.stderr
+    said = [line for line in proc.stderr.splitlines() if "estimator process could not be started" in line]
+    assert len(said) == 1 and "level=ERROR" in said[0], proc.stderr
+
+
+def test_the_main_loop_ends_on_an_estimator_that_could_not_be_started():
+    """OnboardService._check_estimator_start, each watchdog turn of the main loop: the estimator's start_error, once
+    set, becomes EstimatorStartError naming it; none while the first worker is there or still starting."""
+    import types
+
+    from onboard.app.estimator_worker import EstimatorStartError
+    from onboard.app.service import OnboardService
+
+    service = types.SimpleNamespace(estimator=types.SimpleNamespace(start_error=None))
+    OnboardService._check_estimator_start(service)  # type: ignore[arg-type]
+    service.estimator.start_error = ConnectionRefusedError("fork server gone")
+    with pytest.raises(EstimatorStartError, match="could not be started: ConnectionRefusedError: fork server gone"):
+        OnboardService._check_estimator_start(service)  # type: ignore[arg-type]
+
+
 @pytest.mark.integration
 @pytest.mark.timeout(120)
 def test_process_estimator_gives_the_inline_estimates_when_it_keeps_up():

@@ -16,10 +16,12 @@ import time
 import numpy as np
 import pytest
 
+from onboard.app import estimator_worker
 from onboard.app.config import OnboardConfig
 from onboard.app.estimator_worker import SNAPSHOT_PERIOD_S, ProcessEstimator
 from onboard.app.locked_counter import LockedCounter
 from onboard.pipeline.frame_pipeline import make_estimator
+from tests.process_helpers import alive, wait_gone
 
 RESULT_WAIT_S = 30.0  # upper bound of one wait for the worker's own estimate (spawn + one model selection)
 JOIN_S = 10.0  # upper bound for a SIGKILLed child to be reaped
@@ -55,6 +57,13 @@ def _started(pe: ProcessEstimator) -> None:
     if starting is not None:
         starting.thread.join(JOIN_S)
         assert not starting.thread.is_alive()
+
+
+def _first_worker(pe: ProcessEstimator) -> None:
+    """Wait (bounded) for the first worker, which the constructor spawns on a thread, and take it as the next frame
+    would."""
+    _started(pe)
+    assert pe._adopt_started(0.0) and pe.pid is not None
 
 
 def _fill_window(pe, obs, K) -> None:
@@ -183,6 +192,7 @@ def test_a_crash_loop_backs_off_instead_of_spawning_a_process_per_frame(scene):
     counter = LockedCounter(clock=lambda: now[0])
     pe = ProcessEstimator(OnboardConfig(), counter, result_wait_s=0.0, clock=lambda: now[0])
     try:
+        _first_worker(pe)
         _kill(pe)  # died before answering: replaced after the first back-off
         assert _add(pe, obs, K, 0) is None
         assert pe.restarts == 1 and pe.pid is None and pe._backoff_s == ProcessEstimator.RESTART_BACKOFF_MIN_S
@@ -216,12 +226,17 @@ def _children_named(name: str) -> list[int]:
     return [p.pid for p in multiprocessing.active_children() if p.name == name and p.is_alive()]
 
 
+def _fork_server_pid() -> int | None:
+    """The estimator workers' fork server (None: none started yet in this process)."""
+    from multiprocessing import forkserver
+
+    return forkserver._forkserver._forkserver_pid
+
+
 def _kill_fork_server() -> None:
     """SIGKILL the estimator workers' fork server and wait (bounded) until it is dead, unreaped: multiprocessing
     reaps it itself when it finds it gone and starts another."""
-    from multiprocessing import forkserver
-
-    pid = forkserver._forkserver._forkserver_pid
+    pid = _fork_server_pid()
     assert pid is not None
     os.kill(pid, signal.SIGKILL)
     deadline = time.monotonic() + JOIN_S
@@ -262,10 +277,12 @@ def test_a_fork_server_gone_with_the_worker_is_started_again_without_holding_the
 
 @pytest.mark.integration
 def test_close_while_a_replacement_is_being_started_leaves_no_worker_running(scene):
-    """close() during the replacement's start waits for it (bounded) and stops the worker it made."""
+    """close() during the replacement's start waits for it briefly and stops the fork server still importing its
+    preload (it would outlive the daemon): no worker is made, none is left running, nor the fork server."""
     K, truth, obs = scene
     now = [100.0]
     pe = ProcessEstimator(OnboardConfig(), LockedCounter(), result_wait_s=0.0, clock=lambda: now[0])
+    _first_worker(pe)
     _kill(pe)
     _kill_fork_server()
     _add(pe, obs, K, 0)  # it had not answered: the crash back-off first
@@ -273,12 +290,79 @@ def test_close_while_a_replacement_is_being_started_leaves_no_worker_running(sce
     _add(pe, obs, K, 1)
     starting = pe._starting
     assert starting is not None and starting.thread.is_alive()
+    fork_server = _fork_server_pid()
     pe.close()  # the daemon's timeout: it does not wait for the fork server
-    assert starting.thread.is_alive()  # still starting the replacement, which its thread stops when it is there
     starting.thread.join(JOIN_S)
-    assert not starting.thread.is_alive() and starting.worker is None and starting.error is None
+    assert not starting.thread.is_alive() and starting.worker is None and starting.error is not None
+    assert fork_server is not None and wait_gone({fork_server}, JOIN_S) == []
     pids = _children_named("irtrack-estimator")
     assert pids == [], f"estimator workers left running after close(): {pids}"
+
+
+def _without_fork_server() -> None:
+    """The next worker needs a new fork server, which imports its preload first (a second or more)."""
+    if _fork_server_pid() is not None and alive(_fork_server_pid()):
+        _kill_fork_server()
+
+
+@pytest.mark.integration
+def test_the_first_worker_is_started_beside_the_frames_and_gets_the_rows_that_came_first(scene, never_killed):
+    """The constructor does not wait for the first worker (its fork server imports for a second or more): it
+    returns with none, the rows meanwhile are carried and kept, and the frame that takes the worker hands it the
+    window, so that its first answer is over the same rows as a worker that was there from the start."""
+    K, truth, obs = scene
+    _without_fork_server()
+    counter = LockedCounter()
+    pe = ProcessEstimator(OnboardConfig(), counter, result_wait_s=0.0)
+    try:
+        assert pe.pid is None and pe._starting is not None  # the daemon's start goes on meanwhile
+        for i in range(FRAMES_BEFORE_KILL):
+            _add(pe, obs, K, i)
+        _started(pe)
+        pe.result_wait_s = RESULT_WAIT_S
+        est, own = _own_estimate(pe, obs, K, FRAMES_BEFORE_KILL)
+        assert own and est is not None and pe.pid is not None
+        assert est.window_frames == never_killed[FRAMES_BEFORE_KILL].window_frames
+        assert pe.start_error is None and pe.restarts == 0 and counter.total == 0
+    finally:
+        pe.close()
+
+
+@pytest.mark.integration
+def test_close_while_the_first_worker_is_started_leaves_no_process_running():
+    """A daemon stopped during its start (SIGTERM right after it began serving) closes its estimator while the
+    fork server still imports: that fork server is stopped, not left to outlive the daemon, and no worker is made."""
+    _without_fork_server()
+    pe = ProcessEstimator(OnboardConfig(), LockedCounter(), result_wait_s=0.0)
+    starting, fork_server = pe._starting, _fork_server_pid()
+    assert starting is not None and fork_server is not None
+    pe.close()
+    starting.thread.join(JOIN_S)
+    assert not starting.thread.is_alive() and starting.worker is None
+    assert wait_gone({fork_server}, JOIN_S) == []  # killed (this process holds its pipe: it would run on)
+    assert _children_named("irtrack-estimator") == []
+
+
+def test_a_first_worker_that_cannot_be_started_is_counted_and_named(monkeypatch, scene):
+    """A first worker that cannot be started (its fork server failed) raised from the constructor, which the daemon
+    waited on before serving; spawned beside the start now, it is counted on the next frame, as a replacement that
+    cannot be started is, and start_error says why (the daemon ends on it: OnboardService.run)."""
+    K, truth, obs = scene
+
+    def no_fork(self):
+        raise OSError("fork server: no such interpreter")
+
+    monkeypatch.setattr(ProcessEstimator, "_spawn", no_fork)
+    monkeypatch.setattr(estimator_worker, "_start_fork_server", lambda: None)  # no process at all
+    counter = LockedCounter()
+    pe = ProcessEstimator(OnboardConfig(), counter, result_wait_s=0.0)
+    try:
+        _started(pe)
+        assert isinstance(pe.start_error, OSError) and "no such interpreter" in str(pe.start_error)
+        assert _add(pe, obs, K, 0) is None and pe.pid is None
+        assert counter["estimator_error"] == 1 and pe.restarts == 0
+    finally:
+        pe.close()
 
 
 @pytest.mark.integration
@@ -325,6 +409,7 @@ def test_a_hung_worker_is_killed_and_replaced_before_its_pipe_can_block_the_fram
         OnboardConfig(), counter, result_wait_s=0.05, clock=lambda: now[0]
     )  # a stopped worker answers nothing
     try:
+        _first_worker(pe)
         for i in range(HUNG_FRAMES_BEFORE_STOP):
             _add(pe, obs, K, i)
         hung_pid = pe.pid
@@ -372,6 +457,7 @@ def test_the_frame_loop_never_waits_on_the_workers_pipe(scene):
 
     K, _truth, obs = scene
     pe = ProcessEstimator(OnboardConfig(), LockedCounter(logger=logging.getLogger("onboard.rejects")))
+    _first_worker(pe)
     pid = pe.pid
     assert pid is not None
     os.kill(pid, signal.SIGSTOP)  # reads nothing
