@@ -266,8 +266,8 @@ def test_daemon_live_view_serves_frames_and_tracks_of_a_closed_loop(tmp_path):
     daemon = sim = None
     with open(tmp_path / "onboard.log", "wb") as dlog, open(tmp_path / "sim.log", "wb") as slog:
         try:
-            # the estimator on a thread: its process's fork server, which the daemon waits for before it serves
-            # (about 1 s of its start, 1.4 s of CPU), feeds nothing checked here (the 3-D position is not)
+            # the estimator on a thread: its process's fork server (1.4 s of CPU beside the daemon's start) feeds
+            # nothing checked here (the 3-D position is not)
             daemon = subprocess.Popen(
                 [*daemon_command(plan), "--set", "estimator.worker=thread"],
                 cwd=REPO,

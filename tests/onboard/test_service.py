@@ -1267,8 +1267,8 @@ def _signed_daemon(tmp_path, daemon_env, *sets: str):
     gcs = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     gcs.bind(("127.0.0.1", gport))
     gcs.setblocking(False)
-    # no frame reaches these daemons: the estimator on a thread spares each the estimator process's fork server,
-    # which it waited for before serving (about 1 s of its start, 1.4 s of CPU) and which nothing here checks
+    # no frame reaches these daemons: the estimator on a thread spares each the estimator process's fork server
+    # (1.4 s of CPU beside its start), which nothing here checks
     options = [arg for value in ("estimator.worker=thread", *sets) for arg in ("--set", value)]
     d = Daemon(
         ["--mavlink", f"udpin:127.0.0.1:{mport}", "--zenoh-listen", f"tcp/127.0.0.1:{zport}", "--gcs",
