@@ -237,13 +237,19 @@ def test_frames_stating_another_zoom_withhold_direction_and_position_from_the_fi
     assert any(r.getMessage() == "zoom_mismatch cleared" for r in caplog.records)
 
 
-@pytest.mark.parametrize("zoom", [0.0, 1.0, 1.004])
-def test_frames_stating_no_zoom_or_the_calibrated_one_are_published_as_before(zoom):
+def _eight_frames_stating(zoom: float) -> tuple[Rig, list]:
+    """Eight frames of the scene, each stating ``zoom``, and their tracks."""
     rig = Rig(ready_after=3)
     tracks = []
     for k in range(8):
         rig.feed_until(rig.scene.t_us(k) + 45_000)
         tracks.append(rig.pipe.process(dataclasses.replace(rig.scene.frame(k), zoom=zoom), 0))
+    return rig, tracks
+
+
+@pytest.mark.parametrize("zoom", [0.0, 1.0, 1.004])
+def test_frames_stating_no_zoom_or_the_calibrated_one_are_published_as_before(zoom):
+    rig, tracks = _eight_frames_stating(zoom)
     assert all(tr.los is not None for tr in tracks) and tracks[-1].has_position
     assert rig.pipe.withheld_because == () and rig.pipe.frames_withheld_zoom == 0
     assert rig.pipe.last_zoom == (None if zoom == 0.0 else pytest.approx(zoom))
@@ -251,11 +257,7 @@ def test_frames_stating_no_zoom_or_the_calibrated_one_are_published_as_before(zo
 
 @pytest.mark.parametrize("zoom", [math.nan, -1.0, math.inf])
 def test_a_zoom_no_zoom_can_be_is_counted_and_read_as_not_stated_and_tracking_goes_on(zoom):
-    rig = Rig(ready_after=3)
-    tracks = []
-    for k in range(8):
-        rig.feed_until(rig.scene.t_us(k) + 45_000)
-        tracks.append(rig.pipe.process(dataclasses.replace(rig.scene.frame(k), zoom=zoom), 0))
+    rig, tracks = _eight_frames_stating(zoom)
     assert all(tr.los is not None for tr in tracks) and tracks[-1].has_position
     assert rig.pipe.last_zoom is None and rig.pipe.withheld_because == () and rig.pipe.frames_processed == 8
     assert rig.counter["frame_zoom_invalid"] == 8
