@@ -56,7 +56,9 @@ not a measurement; a track without the key is read as false, as the schema's rea
 (a late ray of an object its vehicle's track has left) and the tracker's events are counted at DEBUG level, but
 ``ray_unpaired`` (WARNING: a ray of an object that has been in no fleet target for ``FleetConfig.unpaired_after_s``,
 1 s: its vehicle's lines of sight are taken and fused into nothing; the line names the vehicle and the nearest
-miss).  A frame refused as stale or future, or held as a stamp jump, is no evidence about its vehicle's clock: the
+miss) and ``attitude_bias_above_prior`` (a solve that found a vehicle's rays off by a constant beyond its attitude-bias
+prior and fused them with the bias they suggest, counted per solve; WARNING once per vehicle, naming
+``--vehicle-noise NAME:attitude_bias_deg=..`` with that value).  A frame refused as stale or future, or held as a stamp jump, is no evidence about its vehicle's clock: the
 clock check (below) never sees it.  The status lists refusals under ``rejected`` and events (:data:`EVENTS`) under
 ``events``.
 
@@ -66,7 +68,9 @@ counted and warned once naming the vehicle and the remedy, the vehicle's objects
 stay out until the clash clears (``name_clash_cleared``, INFO); the status lists it under ``name_clash``.
 
 Noise: ``--attitude-bias-deg`` / ``--camera-white-m`` (> 0) / ``--camera-offset-m`` for every vehicle, and
-``--vehicle-noise`` for one vehicle's keys where they differ (e.g. ``uav2:attitude_bias_deg=0.5``).
+``--vehicle-noise`` for one vehicle's keys where they differ (e.g. ``uav2:attitude_bias_deg=0.5``).  A vehicle
+whose rays showed an attitude bias beyond its prior (``attitude_bias_above_prior``) is listed in the status under
+``attitude_bias_deg`` with the bias its rays suggested last, deg.
 
 Exit codes: 0 after ``--seconds`` or on SIGTERM; 130 on Ctrl-C; 2 for invalid options or a session that
 cannot open (one line on stderr).
@@ -223,6 +227,7 @@ EVENTS = frozenset(
         "object_left",
         "own_estimate_disagrees",
         "ray_unpaired",
+        "attitude_bias_above_prior",
     }
 )
 
@@ -665,6 +670,9 @@ class Fusion:
             "latency_floor_ms": {v: round(f * 1e3, 2) for v, f in self.clock_check.floors_s(now_s).items()},
             "clock_inconsistent": flagged,
             "name_clash": sorted(self._clashing),
+            "attitude_bias_deg": {
+                v: round(math.degrees(b), 3) for v, b in sorted(self.tracker.biases_above_prior_rad.items())
+            },
             "rejected": {k: n for k, n in counts.items() if k not in EVENTS},
             "events": {k: n for k, n in counts.items() if k in EVENTS},
         }

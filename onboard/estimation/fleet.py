@@ -62,6 +62,19 @@ moves by ``v s_t``, a miss across the ray of ``B v s_t``, added to the ray's whi
 estimated velocity (``max_speed_mps`` in every direction before there is one), to the pairing gate with
 ``max_speed_mps`` and to the association gate with the last velocity.
 
+A bias the prior leaves out: a vehicle whose published sigma holds an attitude bias larger than its prior here (its
+daemon configured for a worse attitude than the fusion's ``--attitude-bias-deg``) has the excess taken for white
+noise, which its rays average away: overconfident.  White noise of that size would scatter the vehicle's rays about
+their own mean; a bias moves them together.  So after the solve each vehicle with at least
+:data:`BIAS_SCATTER_MIN_RAYS` rays in the window has the scatter of its whitened residuals about their mean,
+``q = sum |r_i - mean r|^2 / (2 (n - 1))``, compared with 1: below :data:`BIAS_SCATTER_RATIO_MAX`, what of each ray's
+published variance is not seen as scatter (``s^2 - q s_w^2``, the median over its rays and axes) is constant, and
+where its root exceeds the configured prior by :data:`BIAS_ABOVE_PRIOR_FACTOR` the solve is run again with it as that
+vehicle's bias prior (:attr:`Triangulation.bias_above_prior` names the vehicle and the value).  A bias larger than
+the published sigma holds (the daemon as wrong as the fusion) is out of reach with two vehicles: its component in the
+plane of the two rays moves their crossing along them and leaves no residual, and the component across it is one
+chi-square degree of freedom per window, independent of the first (docs/fleet.md, "Per-vehicle noise", measured).
+
 Verdict (the single-vehicle estimator's discipline, :mod:`onboard.estimation.map_estimator`, with its
 thresholds from :class:`~onboard.estimation.map_estimator.MapConfig`): ``observable`` when at least two
 vehicles contribute, the range sigma seen from each contributing vehicle's newest camera position is below
@@ -108,6 +121,9 @@ __all__ = [
     "CLOSEST_APPROACH_GATE_CHI2",
     "MIN_BEARING_SIGMA_RAD",
     "MIN_RESIDUAL_DOF",
+    "BIAS_SCATTER_RATIO_MAX",
+    "BIAS_SCATTER_MIN_RAYS",
+    "BIAS_ABOVE_PRIOR_FACTOR",
     "VehicleNoise",
     "white_variance_rad2",
     "modelled_cross_sigma_rad",
@@ -140,6 +156,17 @@ MIN_BEARING_SIGMA_RAD = 1e-6
 #: the residual test needs redundancy: a solution with fewer effective residual degrees of freedom than this
 #: (module docstring, "Verdict") fits any rays, right or wrong, and is never called observable
 MIN_RESIDUAL_DOF = 0.5
+#: a vehicle's rays scatter about their own mean (within one solve's window) by less than this fraction of the
+#: white variance modelled for them: the rest of its published variance is constant, an attitude bias beyond the
+#: fusion's prior (module docstring, "A bias the prior leaves out"); chance alone gives below a quarter at 10 rays
+#: with probability ~3e-4 (chi-square, 18 dof)
+BIAS_SCATTER_RATIO_MAX = 0.25
+#: the scatter test needs this many of a vehicle's rays in the window
+BIAS_SCATTER_MIN_RAYS = 10
+#: ... and names a vehicle only where the bias it suggests exceeds its configured prior by this factor (the white
+#: floor of a tenth of the published variance makes the nominal rays scatter at ~0.3 of their modelled white noise,
+#: with no bias beyond the prior in them)
+BIAS_ABOVE_PRIOR_FACTOR = 1.5
 _UNIT_TOL = 1e-6
 _WHITE_FLOOR_FRACTION = 0.1  # the white part of a bearing's variance is at least this fraction of it
 
@@ -448,6 +475,9 @@ class Triangulation:
     vehicles: tuple[str, ...]
     #: True for :func:`carried_with_bearing`'s estimate (its range carried from several vehicles' estimate)
     carried: bool = False
+    #: (vehicle, attitude-bias sigma in rad) for each vehicle whose rays showed a bias beyond its configured prior
+    #: (module docstring, "A bias the prior leaves out"): the solve took this sigma as its prior instead
+    bias_above_prior: tuple[tuple[str, float], ...] = ()
 
     @property
     def cov_p_ned_m2(self) -> np.ndarray:
@@ -497,6 +527,8 @@ def triangulate(
     v_prior_ned_mps=(0.0, 0.0, 0.0),
     v_prior_sigma_mps: float | None = None,
     v_time_ned_mps=None,
+    *,
+    check_bias: bool = True,
 ) -> Triangulation:
     """The MAP estimate of the target's position and velocity at ``t_s`` (default: the newest ray's time)
     from ``rays`` (module docstring: the cost, its priors, the iterations).  ``noise``: one
@@ -504,7 +536,9 @@ def triangulate(
     position prior (and the first linearisation point); ``v_prior_ned_mps`` / ``v_prior_sigma_mps``: the
     velocity prior (default: zero, ``MapConfig.velocity_prior_sigma_mps``); ``v_time_ned_mps``: the target
     velocity that turns each ray's ``time_sigma_s`` into a miss across it (default: ``config.max_speed_mps`` in
-    every direction).  Raises :class:`InputError` without rays."""
+    every direction).  ``check_bias``: test each vehicle's residual scatter for a bias beyond its prior and
+    solve again with the bias it suggests (module docstring, "A bias the prior leaves out").  Raises
+    :class:`InputError` without rays."""
     cfg = config or FleetConfig()
     if not rays:
         raise InputError("triangulate: no rays")
@@ -624,7 +658,7 @@ def triangulate(
     # weak prior holds (the velocity of rays all taken at one time) is not fitted to them, and counts
     # P_prior_i (H^-1)_ii of its prior row back (the trace of the prior's share of the hat matrix)
     dof = 2 * N - 6 + float(np.sum(P_prior[:6] * np.diag(cov)))
-    return Triangulation(
+    sol = Triangulation(
         t_s=t0,
         p_ned_m=x[:3].copy(),
         v_ned_mps=x[3:6].copy(),
@@ -635,6 +669,48 @@ def triangulate(
         condition=cond,
         vehicles=vehicles,
     )
+    if not check_bias:
+        return sol
+    raised = _bias_beyond_prior(res, vidx, vehicles, models, S_total, white_var)
+    if not raised:
+        return sol
+    per_vehicle = {v: m for v, m in zip(vehicles, models)}
+    for v, s_b in raised:
+        per_vehicle[v] = dataclasses.replace(per_vehicle[v], attitude_bias_sigma_rad=s_b)
+    again = triangulate(
+        rays, per_vehicle, p_prior, cfg, t0, v_prior_ned_mps, v_prior_sigma_mps, v_time_ned_mps, check_bias=False
+    )
+    return dataclasses.replace(again, bias_above_prior=raised)
+
+
+def _bias_beyond_prior(
+    res: np.ndarray,
+    vidx: np.ndarray,
+    vehicles: tuple[str, ...],
+    models: list[NoiseModel],
+    S_total: np.ndarray,
+    white_var: np.ndarray,
+) -> tuple[tuple[str, float], ...]:
+    """(vehicle, suggested attitude-bias sigma, rad) for each vehicle whose whitened residuals ``res`` (N, 2)
+    scatter about their own mean by less than :data:`BIAS_SCATTER_RATIO_MAX` of the white variance modelled for
+    them (module docstring, "A bias the prior leaves out")."""
+    out = []
+    for k, v in enumerate(vehicles):
+        sel = vidx == k
+        n_k = int(np.sum(sel))
+        if n_k < BIAS_SCATTER_MIN_RAYS:
+            continue
+        r = res[sel]
+        ratio = float(np.sum((r - r.mean(axis=0)) ** 2)) / (2 * (n_k - 1))
+        if not ratio < BIAS_SCATTER_RATIO_MAX:
+            continue
+        # what of the published variance is not seen as scatter is constant over the window: the bias's
+        s_b = models[k].attitude_bias_sigma_rad
+        constant = S_total[sel] ** 2 - ratio * white_var[sel]
+        suggested = math.sqrt(max(float(np.median(constant)), s_b * s_b))
+        if suggested > BIAS_ABOVE_PRIOR_FACTOR * s_b:
+            out.append((v, suggested))
+    return tuple(out)
 
 
 # --------------------------------------------------------------------------- the verdict
@@ -699,9 +775,15 @@ def fleet_verdict(
     across each line of sight then takes the angular sigma the solve models for its ray
     (:func:`modelled_cross_sigma_rad`, the configured attitude-bias prior in it), else the published one."""
     config = config or FleetConfig()
+    raised = dict(sol.bias_above_prior)
 
     def cross(ray: Ray) -> np.ndarray:
-        return ray.sigma_cross_rad if noise is None else modelled_cross_sigma_rad(ray, noise_for(noise, ray.vehicle))
+        if noise is None:
+            return ray.sigma_cross_rad
+        model = noise_for(noise, ray.vehicle)
+        if ray.vehicle in raised:
+            model = dataclasses.replace(model, attitude_bias_sigma_rad=raised[ray.vehicle])
+        return modelled_cross_sigma_rad(ray, model)
 
     P = sol.cov_p_ned_m2
     p = sol.p_ned_m

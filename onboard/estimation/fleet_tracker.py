@@ -31,6 +31,7 @@ target, in their gates' chi-square).
 
 from __future__ import annotations
 
+import logging
 import math
 from collections import deque
 from collections.abc import Mapping
@@ -80,7 +81,10 @@ class FleetTracker:
     unassigned, or refused and counted); :meth:`solve` estimates one target from its rays now.  Refused
     rays are counted in ``counter`` by reason: ``ray_stale`` (older than the fleet's clock ``now_s`` by more
     than the window), ``ray_out_of_order`` (not newer than the same object's last ray); kept but in no target for
-    ``unpaired_after_s``: ``ray_unpaired`` (module docstring).  Events counted
+    ``unpaired_after_s``: ``ray_unpaired`` (module docstring).  ``attitude_bias_above_prior``: a solve whose rays
+    showed a vehicle's attitude bias beyond its configured prior and took the bias they suggest instead
+    (:func:`~onboard.estimation.fleet.triangulate`), counted per solve, a WARNING the first time for each vehicle
+    naming the ``--vehicle-noise`` setting that fits.  Events counted
     at DEBUG level: ``target_created``, ``target_dropped``, ``object_left`` (failed its target's gate, went
     silent or its vehicle was withdrawn, :meth:`withdraw`).
 
@@ -109,6 +113,9 @@ class FleetTracker:
         self._unpaired_since: dict[tuple[str, int], float] = {}
         # the nearest miss of the last association that found nothing: (chi2, what) for a target and for a pairing
         self._miss: tuple[tuple[float, str], tuple[float, str]] = ((math.inf, ""), (math.inf, ""))
+        # each vehicle warned of as attitude_bias_above_prior (once: the count goes on per solve) and the bias its
+        # rays suggested last, rad
+        self._bias_named: dict[str, float] = {}
         self.now_s = -math.inf
 
     def _fleet_now(self) -> float:
@@ -127,6 +134,12 @@ class FleetTracker:
 
     def members(self, target_id: int) -> frozenset[tuple[str, int]]:
         return frozenset(self._targets[target_id].members)
+
+    @property
+    def biases_above_prior_rad(self) -> dict[str, float]:
+        """Each vehicle whose rays have shown an attitude bias beyond its configured prior (counted
+        ``attitude_bias_above_prior``) and the bias they suggested last, rad."""
+        return dict(self._bias_named)
 
     def last_estimate(self, target_id: int) -> FleetEstimate | None:
         return self._targets[target_id].last
@@ -195,6 +208,20 @@ class FleetTracker:
             f"{key[0]} object {key[1]}: in no fleet target for {alone_s:.1f} s, its lines of sight fused into "
             f"nothing; nearest: {'; '.join(nearest)}; its attitude may be off by more than its prior "
             "(--vehicle-noise NAME:attitude_bias_deg=...), its clock off, or no other vehicle sees its object",
+        )
+
+    def _note_bias(self, vehicle: str, bias_rad: float) -> None:
+        configured_deg = math.degrees(self._noise(vehicle).attitude_bias_sigma_rad)
+        first = vehicle not in self._bias_named
+        self._bias_named[vehicle] = bias_rad
+        self.counter.count(
+            "attitude_bias_above_prior",
+            f"{vehicle}: its lines of sight are off by a constant beyond its attitude-bias prior "
+            f"({configured_deg:.2g} deg): their scatter is well below the white noise their published sigma leaves "
+            f"after the prior; fused with the bias they suggest, {math.degrees(bias_rad):.2g} deg; configure it: "
+            f"--vehicle-noise {vehicle}:attitude_bias_deg={math.degrees(bias_rad):.2g}",
+            level=logging.WARNING if first else logging.DEBUG,
+            subject=vehicle,
         )
 
     def withdraw(self, vehicle: str, why: str) -> None:
@@ -373,6 +400,8 @@ class FleetTracker:
             v_time = None if target.last is None else target.last.v_ned_mps
             sol = triangulate(rays, self.noise, seed, self.config, v_time_ned_mps=v_time)
             est = fleet_verdict(sol, rays, self.config, target_id, self.noise)
+            for vehicle, bias_rad in sol.bias_above_prior:
+                self._note_bias(vehicle, bias_rad)
         target.last = est
         if len(est.contributions) >= 2:
             target.last_multi = est

@@ -3,8 +3,10 @@ process between two synthetic vehicles and a subscriber on loopback zenoh."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
+import math
 import subprocess
 import sys
 import threading
@@ -51,10 +53,12 @@ def payload_of(
     time_unix: bool = True,
     t0_unix_s: float = T0_UNIX_S,
     clock_error_s: float = 0.0,
+    published_bias_rad: float = 0.0,
 ) -> bytes:
     """``vehicle``'s track at ``t_s`` after ``t0_unix_s`` (truth in ORIGIN_1's frame), in its own frame (uav2,
-    uav3: ORIGIN_2's), 0.3 mrad white bearing noise; its ``time_unix_us`` off by ``clock_error_s``."""
-    los = measure(vehicle, TARGET, t_s, rng, 0.3e-3)
+    uav3: ORIGIN_2's), 0.3 mrad white bearing noise (its sigmas holding ``published_bias_rad`` too); its
+    ``time_unix_us`` off by ``clock_error_s``."""
+    los = measure(vehicle, TARGET, t_s, rng, 0.3e-3, published_bias_rad)
     origin = ORIGIN_1 if vehicle.name == "uav1" else ORIGIN_2
     R, t = ned_transform(ORIGIN_1, origin)
     los = type(los)(R @ los.p_cam_ned_m + t, R @ los.los_ned, los.sigma_az_rad, los.sigma_el_rad, los.truth_p_ned_m)
@@ -689,6 +693,31 @@ def test_an_impossible_ray_is_refused_by_reason_and_leaves_its_vehicles_object_i
     st = fusion.status(T0_UNIX_S + 1.5)
     assert st["rejected"][reason] == 1 and st["name_clash"] == []
     assert st["events"] == {"target_created": 1} and not EVENTS & set(st["rejected"])
+
+
+def test_a_vehicle_whose_published_bias_exceeds_the_prior_is_listed_in_the_status_with_the_bias_its_rays_suggest():
+    """uav2 publishes (and has) a 0.3 deg attitude bias against the fusion's 0.1 deg prior: the status lists uav2 under
+    ``attitude_bias_deg`` with about 0.3 deg and counts ``attitude_bias_above_prior`` under ``events``; uav1 is not
+    named.  The same fleet at the prior lists nobody."""
+    prior_rad = math.radians(0.1)
+    for uav2_deg, named in ((0.3, True), (0.1, False)):
+        fusion = Fusion(
+            FleetTracker(FleetConfig(), NoiseModel(attitude_bias_sigma_rad=prior_rad), RejectCounter()),
+            CommonClock(None),
+        )
+        uav2 = dataclasses.replace(UAV2, attitude_error_rad=tuple(np.radians([0.2, -0.25, uav2_deg])))
+        rng = np.random.default_rng(5)
+        for k, t in enumerate(np.arange(0.0, 1.5, 1 / 30)):
+            for v, bias_rad in ((UAV1, prior_rad), (uav2, math.radians(uav2_deg))):
+                payload = payload_of(v, t, rng, k, published_bias_rad=bias_rad)
+                fusion.receive(f"irtrack/{v.name}/track", payload, T0_UNIX_S + t + 0.005)
+            fusion.flush()
+        st = fusion.status(T0_UNIX_S + 1.5)
+        if named:
+            assert list(st["attitude_bias_deg"]) == ["uav2"] and 0.25 < st["attitude_bias_deg"]["uav2"] < 0.35
+            assert st["events"]["attitude_bias_above_prior"] > 0 and not EVENTS & set(st["rejected"])
+        else:
+            assert st["attitude_bias_deg"] == {} and "attitude_bias_above_prior" not in st["events"]
 
 
 def test_a_time_sigma_within_the_bound_widens_the_fused_covariance():
