@@ -293,7 +293,7 @@ class FramePipeline:
         self._last_taken: IrFrame | None = None  # the last accepted frame: a resend of it is compared pixel by pixel
         # the warnings the daemon withholds the geometry for (withheld_because's setter); another thread sets them
         self._withheld_by_daemon: tuple[str, ...] = ()
-        self._was_withheld = False
+        self._withheld: tuple[str, ...] = ()  # what withheld the last frame's geometry (_follow_withheld)
         #: the zoom the last frame taken stated (IRF1's field, relative to the calibrated one); None: not stated
         self.last_zoom: float | None = None
         self._zoom_off = False  # the last frame taken stated a zoom camera.intrinsics are not for
@@ -545,6 +545,7 @@ class FramePipeline:
 
         self.last_position_age_s = self._position_age_s(pose)
         self._follow_compensation()
+        withheld = self._follow_withheld()
         e0 = self._clock_ns()
         est = None
         if not self._zoom_off:
@@ -553,7 +554,7 @@ class FramePipeline:
             est = self._estimate(upd, pose, t_us)
             self._time_offset_add(upd, stamp_pose, est, t_us)
         self.estimator_ms.add((self._clock_ns() - e0) / 1e6)
-        track = self._track(frame, upd, state, pose, est)
+        track = self._track(frame, upd, state, pose, est, withheld)
         self.last_track = track
         self.frames_processed += 1
         self.pose_wait_ms.add(waited_ns / 1e6)
@@ -926,16 +927,25 @@ class FramePipeline:
         rng = float(np.linalg.norm(los))
         return across_range_widened(cov_p_ned_m2, los / rng, rng) if rng > 0 else np.asarray(cov_p_ned_m2, dtype=float)
 
-    def _track(self, frame: IrFrame, upd, state: str, pose: PoseAt | None, est) -> Track:
-        withheld = bool(self.withheld_because)
-        if withheld != self._was_withheld:
-            self._was_withheld = withheld
-            if withheld:
-                log.warning("line of sight and 3-D positions withheld: %s", ", ".join(self.withheld_because))
-            else:  # the window holds rows made with the wrong camera: start again
-                log.info("line of sight and 3-D positions published again")
-                self._reset_estimator("configuration mismatch cleared")
-                est = None
+    def _follow_withheld(self) -> tuple[str, ...]:
+        """What withholds this frame's line of sight and 3-D position (:attr:`withheld_because`, read once), logged
+        as it starts and ends.  At its end the estimator starts again, before this frame's row, which is the new
+        window's first: the window holds rows made with the wrong camera (a ``camera_mismatch``'s), or its newest
+        estimate is as old as the frames withheld (a zoom's rows never reach it), so that an estimate carried from it
+        would be withheld as stale (counted ``estimate_after_gap``, as if the frames had stopped coming)."""
+        codes = self.withheld_because
+        before, self._withheld = self._withheld, codes
+        if codes and not before:
+            log.warning("line of sight and 3-D positions withheld: %s", ", ".join(codes))
+        elif before and not codes:
+            log.info("line of sight and 3-D positions published again")
+            self._reset_estimator(f"{', '.join(before)} cleared")
+        return codes
+
+    def _track(
+        self, frame: IrFrame, upd, state: str, pose: PoseAt | None, est, withheld_because: tuple[str, ...]
+    ) -> Track:
+        withheld = bool(withheld_because)
         residual = None
         if withheld and est is not None:
             # the image fields only, but the residual figure still goes out: it is what clears camera_mismatch

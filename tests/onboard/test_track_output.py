@@ -6,10 +6,12 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+import time
 
 import numpy as np
 import pytest
 
+from onboard.app.estimator_worker import ThreadedEstimator
 from onboard.app.service import MISMATCH_WARNINGS
 from onboard.app.watchdog import Watchdog
 from onboard.core.errors import InputError
@@ -235,6 +237,38 @@ def test_frames_stating_another_zoom_withhold_direction_and_position_from_the_fi
     for words in ("2x", "camera.intrinsics are for 1.0x", "set the camera's zoom back", "calibrate"):
         assert words in warned[0], words
     assert any(r.getMessage() == "zoom_mismatch cleared" for r in caplog.records)
+
+
+def test_the_first_frame_back_at_the_calibrated_zoom_starts_the_fresh_window_with_its_own_row(caplog):
+    """The estimator starts again before the first frame back at 1.0 is added, not after: its row is the new window's
+    first (not dropped with the old window), and the estimator worker is not asked for the old window's estimate,
+    as old as the frames withheld, which it withheld as stale after a gap in the frames that never was (counted
+    ``estimate_after_gap``).  Before, the frame's row went to the old window, the reset came after it, and the
+    daemon logged ``estimate_after_gap`` and "estimator reset: configuration mismatch cleared"."""
+    rig = Rig(ready_after=3)
+    # the daemon's worker, answering no frame in time (result_wait_s 0): each frame gets the newest estimate carried
+    worker = ThreadedEstimator(rig.est, rig.counter, result_wait_s=0.0, max_extrapolation_s=0.3)
+    pipe = FramePipeline(rig.config, rig.pose, make_tracker(rig.config), worker, counter=rig.counter)
+    try:
+        with caplog.at_level(logging.INFO, logger="onboard.pipeline.frame_pipeline"):
+            for k in range(ZOOM_UNTIL + 5):
+                rig.feed_until(rig.scene.t_us(k) + 45_000)
+                zoom = 2.0 if ZOOM_FROM <= k < ZOOM_UNTIL else 1.0
+                pipe.process(dataclasses.replace(rig.scene.frame(k), zoom=zoom), 0)
+                time.sleep(0.005)  # the worker answers between frames, as the daemon's does
+    finally:
+        worker.close()
+    assert rig.counter["estimate_after_gap"] == 0  # 20 frames (0.67 s) withheld are no gap in the frames
+    kinds = [c for c, _ in rig.est.calls]
+    assert kinds.count("reset") == 1
+    last_zoom_free, back = (rig.scene.t_us(k) / 1e6 for k in (ZOOM_FROM - 1, ZOOM_UNTIL))
+    at = kinds.index("reset")
+    assert rig.est.calls[at - 1 : at + 2] == [
+        ("add", pytest.approx(last_zoom_free)),
+        ("reset", pytest.approx(math.nan, nan_ok=True)),
+        ("add", pytest.approx(back)),
+    ]
+    assert "estimator reset: zoom_mismatch cleared" in [r.getMessage() for r in caplog.records]
 
 
 def _eight_frames_stating(zoom: float) -> tuple[Rig, list]:
