@@ -118,6 +118,17 @@ def _f(x: float | None, fmt: str) -> str:
     return "-" if x is None or not math.isfinite(x) else format(x, fmt)
 
 
+def _why_no_line_of_sight(track: Track) -> str:
+    """Why a track with a pixel has no line of sight: no pose; a coasting tracker's predicted centre (never given
+    one); or a measured one with a pose, whose geometry the daemon withholds (a zoom, camera or gimbal mismatch: the
+    status's ``geometry`` and ``warnings`` name it)."""
+    if not track.pose_valid:
+        return "no pose"
+    if not track.measurement_valid:
+        return "predicted, no line of sight"
+    return "line of sight withheld: see the status's geometry"
+
+
 def format_track(track: Track) -> str:
     """One readable line for ``track``: time, state, what it has (position, line of sight or pixel), verdict.
 
@@ -143,7 +154,7 @@ def format_track(track: Track) -> str:
             f" (sigma {_f(los.sigma_azimuth_deg, '.2f')} {_f(los.sigma_elevation_deg, '.2f')}), no position yet"
         )
     elif track.u_px is not None and track.v_px is not None:
-        parts.append(f"pixel {track.u_px:.1f} {track.v_px:.1f} (no pose)")
+        parts.append(f"pixel {track.u_px:.1f} {track.v_px:.1f} ({_why_no_line_of_sight(track)})")
     else:
         parts.append("no target")
     parts.append("observable " + ("yes" if track.observable else "no"))

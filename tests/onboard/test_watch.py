@@ -76,6 +76,15 @@ def test_a_track_without_pose_shows_its_pixel():
     assert "pixel 321.3 200.5 (no pose)" in line
 
 
+def test_a_track_with_a_pose_but_no_line_of_sight_says_why_not_no_pose():
+    # a frame stating a zoom camera.intrinsics are not for (or a camera/gimbal mismatch): pose, measurement, geometry
+    # withheld; before, this line said "(no pose)" and sent the reader to the MAVLink link
+    line = format_track(tracking_track(u_px=321.34, v_px=200.46))
+    assert "pixel 321.3 200.5 (line of sight withheld: see the status's geometry)" in line
+    coasting = format_track(tracking_track(state="coasting", measurement_valid=False, u_px=321.34, v_px=200.46))
+    assert "pixel 321.3 200.5 (predicted, no line of sight)" in coasting
+
+
 def test_a_positioned_track_shows_position_sigma_range_and_verdict():
     track = positioned_track(time_boot_us=16_000_000, range_sigma_ratio=0.021, cov_p_ned_m2=np.diag([4.0, 9.0, 1.0]))
     line = format_track(track)
