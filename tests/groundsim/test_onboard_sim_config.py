@@ -39,3 +39,19 @@ def test_onboard_sim_camera_is_the_reference_scenarios_camera():
             np.abs(np.dot(m.q_body_from_mount, m0.q_body_from_mount)), 1.0, atol=1e-12, err_msg=name
         )
         assert m.gimballed == m0.gimballed is True, name
+
+
+def _body(path: Path) -> list[str]:
+    """The file's lines after its header comment, blank lines left out."""
+    lines = [ln for ln in path.read_text().splitlines() if ln.strip()]
+    start = next(i for i, ln in enumerate(lines) if not ln.startswith("#"))
+    return lines[start:]
+
+
+def test_onboard_sim_is_the_shipped_file_line_for_line_but_its_sim_lines():
+    """The file a newcomer runs first says what config/onboard.yaml says, comments included: a comment added to one
+    (camera.intrinsics' zoom, say) and not to the other drifts apart unseen by the value checks above."""
+    shipped, sim = _body(REPO / "config/onboard.yaml"), _body(REPO / "config/onboard_sim.yaml")
+    assert len(shipped) == len(sim)
+    differing = [(a, b) for a, b in zip(shipped, sim, strict=True) if a != b]
+    assert differing and all("(sim)" in b for _, b in differing), [b for _, b in differing if "(sim)" not in b]
