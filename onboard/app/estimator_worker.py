@@ -485,6 +485,12 @@ class ProcessEstimator(_Carried):
         return None if self._proc is None else self._proc.pid
 
     @property
+    def starting(self) -> bool:
+        """A worker (the first, or a replacement) is being spawned and is not there yet."""
+        start = self._starting
+        return start is not None and start.thread.is_alive()
+
+    @property
     def start_error(self) -> Exception | None:
         """Why the first worker could not be started (None: it started, or is still starting).  Read by another thread
         than the frames' (the daemon's main loop): the start's outcome, set once by its own thread."""

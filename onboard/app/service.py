@@ -85,7 +85,7 @@ from onboard.app.observers import (
 )
 from onboard.app.os_thread import name_os_thread
 from onboard.app.shared_pose import SharedPoseBuffer
-from onboard.app.status_sections import camera_section, time_offset_section
+from onboard.app.status_sections import camera_section, estimator_label, time_offset_section
 from onboard.app.watchdog import OVERLOAD_CLEAR_S, STALL_NAMED_S, Watchdog
 from onboard.core.errors import InputError
 from onboard.core.irframe import IrFrame, IrFrameError, check_payload_size, decode_irframe
@@ -826,7 +826,7 @@ class OnboardService:
             pipeline_cpu_share=pipeline_share,
             last_track=None if latest is None else latest[0],
             last_track_age_s=None if latest is None else max(now - latest[1], 0.0),
-            estimator=self.estimator_kind,
+            estimator=estimator_label(self.estimator_kind, self.estimator),
             queue_length=len(self.queue),
             queue_wait_ms=self.queue_wait_ms.summary(),
             publish_ms=self.publish_ms.summary(),

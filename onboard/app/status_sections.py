@@ -10,7 +10,16 @@ if TYPE_CHECKING:
     from onboard.io.camera_protocol import CameraProtocol
     from onboard.pipeline.frame_pipeline import FramePipeline
 
-__all__ = ["camera_section", "time_offset_section"]
+__all__ = ["camera_section", "estimator_label", "time_offset_section"]
+
+
+def estimator_label(kind: str, estimator: Any) -> str:
+    """``estimator``: what estimates the 3-D position (``kind``, e.g. ``sliding window (process)``), and, while its
+    worker process is being spawned (the daemon serves before the first is there; a replacement after a crash),
+    that it is starting: until then the frames' estimates are carried, and a first position comes later."""
+    if getattr(estimator, "starting", False):
+        return f"{kind}, worker starting"
+    return kind
 
 
 def time_offset_section(pipeline: FramePipeline, config: OnboardConfig) -> dict[str, Any] | None:

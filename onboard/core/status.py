@@ -314,7 +314,14 @@ STATUS_JSON_KEYS: tuple[tuple[str, dict[str, Any]], ...] = (
             "required": ["share", "pipeline_share", "cores"],
         },
     ),
-    ("estimator", {"type": "string"}),
+    (
+        "estimator",
+        {
+            "type": "string",
+            "description": "what estimates the 3-D position, e.g. 'sliding window (process)'; '..., worker starting' while its"
+            " worker process is being spawned (at start, or after a crash): estimates are carried meanwhile",
+        },
+    ),
     (
         "warnings",
         {

@@ -20,6 +20,7 @@ from onboard.app import estimator_worker
 from onboard.app.config import OnboardConfig
 from onboard.app.estimator_worker import SNAPSHOT_PERIOD_S, ProcessEstimator
 from onboard.app.locked_counter import LockedCounter
+from onboard.app.status_sections import estimator_label
 from onboard.pipeline.frame_pipeline import make_estimator
 from tests.process_helpers import alive, wait_gone
 
@@ -316,9 +317,12 @@ def test_the_first_worker_is_started_beside_the_frames_and_gets_the_rows_that_ca
     pe = ProcessEstimator(OnboardConfig(), counter, result_wait_s=0.0)
     try:
         assert pe.pid is None and pe._starting is not None  # the daemon's start goes on meanwhile
+        # the status says so: until the worker is there a first position comes later than it will
+        assert pe.starting and estimator_label("sliding window (process)", pe).endswith(", worker starting")
         for i in range(FRAMES_BEFORE_KILL):
             _add(pe, obs, K, i)
         _started(pe)
+        assert not pe.starting and estimator_label("sliding window (process)", pe) == "sliding window (process)"
         pe.result_wait_s = RESULT_WAIT_S
         est, own = _own_estimate(pe, obs, K, FRAMES_BEFORE_KILL)
         assert own and est is not None and pe.pid is not None
