@@ -294,6 +294,8 @@ class FramePipeline:
         # the warnings the daemon withholds the geometry for (withheld_because's setter); another thread sets them
         self._withheld_by_daemon: tuple[str, ...] = ()
         self._withheld: tuple[str, ...] = ()  # what withheld the last frame's geometry (_follow_withheld)
+        # the sets of codes whose withholding has begun and ended once, logged then: again, at DEBUG (_follow_withheld)
+        self._withheld_told: set[tuple[str, ...]] = set()
         #: the zoom the last frame taken stated (IRF1's field, relative to the calibrated one); None: not stated
         self.last_zoom: float | None = None
         self._zoom_off = False  # the last frame taken stated a zoom camera.intrinsics are not for
@@ -641,7 +643,7 @@ class FramePipeline:
 
     # ------------------------------------------------------------------ estimation
 
-    def _reset_estimator(self, why: str) -> None:
+    def _reset_estimator(self, why: str, level: int = logging.INFO) -> None:
         if self.estimator is not None and self._est_has_data:
             try:
                 self.estimator.reset()
@@ -650,7 +652,7 @@ class FramePipeline:
                     "estimator_error", f"{type(self.estimator).__name__}.reset: {type(exc).__name__}: {exc}"
                 )
             self.estimator_resets += 1
-            log.info("estimator reset: %s", why)
+            log.log(level, "estimator reset: %s", why)
         self._est_has_data = False
         self._est_track_id = None
         self._window_est = None
@@ -932,14 +934,21 @@ class FramePipeline:
         as it starts and ends.  At its end the estimator starts again, before this frame's row, which is the new
         window's first: the window holds rows made with the wrong camera (a ``camera_mismatch``'s), or its newest
         estimate is as old as the frames withheld (a zoom's rows never reach it), so that an estimate carried from it
-        would be withheld as stale (counted ``estimate_after_gap``, as if the frames had stopped coming)."""
+        would be withheld as stale (counted ``estimate_after_gap``, as if the frames had stopped coming).
+
+        Logged at WARNING and INFO the first time for each set of codes, at DEBUG after: a zoom decides it frame by
+        frame, and one that flips every frame (two senders on the key, a lens at the tolerance's edge) would log a
+        WARNING every other frame; the watchdog's warning and the status's ``geometry`` say it goes on."""
         codes = self.withheld_because
         before, self._withheld = self._withheld, codes
         if codes and not before:
-            log.warning("line of sight and 3-D positions withheld: %s", ", ".join(codes))
+            level = logging.DEBUG if codes in self._withheld_told else logging.WARNING
+            log.log(level, "line of sight and 3-D positions withheld: %s", ", ".join(codes))
         elif before and not codes:
-            log.info("line of sight and 3-D positions published again")
-            self._reset_estimator(f"{', '.join(before)} cleared")
+            level = logging.DEBUG if before in self._withheld_told else logging.INFO
+            self._withheld_told.add(before)
+            log.log(level, "line of sight and 3-D positions published again")
+            self._reset_estimator(f"{', '.join(before)} cleared", level)
         return codes
 
     def _track(

@@ -271,6 +271,31 @@ def test_the_first_frame_back_at_the_calibrated_zoom_starts_the_fresh_window_wit
     assert "estimator reset: zoom_mismatch cleared" in [r.getMessage() for r in caplog.records]
 
 
+def test_a_zoom_that_flips_every_frame_is_warned_once_not_at_each_flip(caplog):
+    """Two senders on one key (one at 1.0, one at 2x), or a lens encoder at the tolerance's edge: the zoom flips
+    every frame, and each flip starts or ends the withholding.  Each zoomed frame is still withheld and each frame
+    at 1.0 published, but the pipeline says so once: before, a WARNING every other frame (15 a second at 30 Hz), and
+    an INFO "published again" and "estimator reset" between each two."""
+    rig = Rig(ready_after=3)
+    tracks = []
+    with caplog.at_level(logging.DEBUG, logger="onboard.pipeline.frame_pipeline"):
+        for k in range(60):
+            rig.feed_until(rig.scene.t_us(k) + 45_000)
+            zoom = 2.0 if k >= 20 and k % 2 else 1.0
+            tracks.append(rig.pipe.process(dataclasses.replace(rig.scene.frame(k), zoom=zoom), 0))
+    assert all((tr.los is None) == (k >= 20 and k % 2 == 1) for k, tr in enumerate(tracks))
+    assert rig.pipe.frames_withheld_zoom == 20
+    pipeline_logs = [r for r in caplog.records if r.name == "onboard.pipeline.frame_pipeline"]
+    warned = [r.getMessage() for r in pipeline_logs if r.levelno >= logging.WARNING]
+    assert warned == ["line of sight and 3-D positions withheld: zoom_mismatch"]
+    told = [r.getMessage() for r in pipeline_logs if r.levelno == logging.INFO]
+    assert told.count("line of sight and 3-D positions published again") == 1
+    assert told.count("estimator reset: zoom_mismatch cleared") == 1
+    # the flips after the first are still in the log, at DEBUG
+    flips = [r for r in pipeline_logs if r.levelno == logging.DEBUG and "withheld: zoom_mismatch" in r.getMessage()]
+    assert len(flips) == 19
+
+
 def _eight_frames_stating(zoom: float) -> tuple[Rig, list]:
     """Eight frames of the scene, each stating ``zoom``, and their tracks."""
     rig = Rig(ready_after=3)
