@@ -159,7 +159,7 @@ MIN_RESIDUAL_DOF = 0.5
 #: a vehicle's rays scatter about their own mean (within one solve's window) by less than this fraction of the
 #: white variance modelled for them: the rest of its published variance is constant, an attitude bias beyond the
 #: fusion's prior (module docstring, "A bias the prior leaves out"); chance alone gives below a quarter at 10 rays
-#: with probability ~3e-4 (chi-square, 18 dof)
+#: with probability ~6e-4 (chi-square, 18 dof, below 4.5: 5.5e-4; more where the solve fits part of the scatter)
 BIAS_SCATTER_RATIO_MAX = 0.25
 #: the scatter test needs this many of a vehicle's rays in the window
 BIAS_SCATTER_MIN_RAYS = 10
