@@ -856,7 +856,8 @@ class ProcessEstimator(_Carried):
 class _WorkerStart:
     """A worker (the first, or a replacement) being spawned on a thread (:meth:`ProcessEstimator._begin_start`):
     ``worker`` once it is there, ``error`` when it could not be started.  :meth:`close` and the thread hand over under a
-    lock, so that a worker made after the estimator closed is stopped by the thread itself, not left running."""
+    lock, so that a worker made after the estimator closed is stopped by the thread itself, not left running, and so is
+    the fork server its spawn started again after close() had stopped the first."""
 
     def __init__(self, spawn: Callable[[], tuple[BaseProcess, Connection]], since_s: float) -> None:
         self.since_s = since_s
@@ -870,6 +871,8 @@ class _WorkerStart:
 
     def _run(self, spawn: Callable[[], tuple[BaseProcess, Connection]]) -> None:
         name_os_thread("irtrack-est-start")
+        if self._closed:  # close() came before the thread ran: nothing to start
+            return
         try:
             worker = spawn()
         except Exception as exc:  # noqa: BLE001 - any failure to start is counted by the frame loop
@@ -880,6 +883,9 @@ class _WorkerStart:
                 self.worker = worker
                 return
         _stop_unadopted(*worker)  # close() came first and did not wait for it
+        # ... and stopped the fork server, which this spawn, not yet connected to it (pickling the worker's config),
+        # found dead and started again: the worker came from that one, which would otherwise outlive the estimator
+        _stop_fork_server()
 
     def close(self) -> tuple[BaseProcess, Connection] | None:
         """No taker after this: the worker made by now (the caller takes or stops it), or None (the thread stops

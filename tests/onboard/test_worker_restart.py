@@ -11,6 +11,7 @@ from __future__ import annotations
 import logging
 import os
 import signal
+import threading
 import time
 
 import numpy as np
@@ -344,6 +345,37 @@ def test_close_while_the_first_worker_is_started_leaves_no_process_running():
     starting.thread.join(JOIN_S)
     assert not starting.thread.is_alive() and starting.worker is None
     assert wait_gone({fork_server}, JOIN_S) == []  # killed (this process holds its pipe: it would run on)
+    assert _children_named("irtrack-estimator") == []
+
+
+@pytest.mark.integration
+def test_close_before_the_start_thread_reaches_the_fork_server_leaves_no_fork_server_running(monkeypatch):
+    """close() kills the fork server while the start thread is still on its way to it (pickling the worker's config
+    on a loaded core, before proc.start() connects): multiprocessing finds it dead there and starts another, which
+    the thread's worker is forked from.  Before, close() had returned and that new fork server ran on (the very
+    thing close() kills the first one for); now the thread that finds the estimator closed stops it too."""
+    _without_fork_server()
+    reached = threading.Event()
+    go = threading.Event()
+    start_fork_server = estimator_worker._start_fork_server
+
+    def held_in_the_thread() -> None:
+        if threading.current_thread().name == "irtrack-estimator-start":
+            reached.set()
+            assert go.wait(JOIN_S)
+        start_fork_server()
+
+    monkeypatch.setattr(estimator_worker, "_start_fork_server", held_in_the_thread)
+    pe = ProcessEstimator(OnboardConfig(), LockedCounter(), result_wait_s=0.0)
+    starting, first = pe._starting, _fork_server_pid()
+    assert starting is not None and first is not None and reached.wait(JOIN_S)
+    pe.close()
+    assert wait_gone({first}, JOIN_S) == []
+    go.set()
+    starting.thread.join(RESULT_WAIT_S)
+    assert not starting.thread.is_alive() and starting.worker is None
+    later = _fork_server_pid()
+    assert later is None or wait_gone({later}, JOIN_S) == [], f"fork server {later} left running after close()"
     assert _children_named("irtrack-estimator") == []
 
 
