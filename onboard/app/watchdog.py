@@ -428,7 +428,7 @@ class Watchdog:
         not stated, taken as calibrated)."""
         self._hold(
             "zoom_mismatch",
-            zoom_off_calibration(stated_zoom)
+            zoom_off_calibration(stated_zoom, was_off="zoom_mismatch" in self._active)
             and f"IR frames state a zoom of {stated_zoom:g}x but camera.intrinsics are for 1.0x (the zoom they were "
             f"calibrated at): every line of sight made with them would be off by that ratio, so lines of sight and "
             f"3-D positions are withheld (the 2-D track goes on); set the camera's zoom back to 1.0, or calibrate "

@@ -19,11 +19,13 @@ offset  type    field
 ======  ======  =====================================================================
 
 The zoom field keeps version 1 in both directions: every earlier sender wrote zeros there (not
-stated, read as before) and an earlier reader ignores it.  A zoom that is not finite or is
-negative refuses nothing (a sloppy sender's padding must not stop tracking): the frame keeps it
-as sent and :attr:`IrFrame.stated_zoom` reads it as not stated (:attr:`IrFrame.zoom_invalid`;
-the pipeline counts it as ``frame_zoom_invalid``).  What a stated zoom does to the daemon's
-geometry is :func:`zoom_off_calibration`'s, used by :mod:`onboard.pipeline.frame_pipeline`.
+stated, read as before) and an earlier reader ignores it.  A zoom that is not finite, is negative
+or lies outside :data:`ZOOM_PLAUSIBLE` (0.01-100x) refuses nothing (a sloppy sender's padding must
+not stop tracking): the frame keeps it as sent and :attr:`IrFrame.stated_zoom` reads it as not
+stated (:attr:`IrFrame.zoom_invalid`; the pipeline counts it as ``frame_zoom_invalid``).  What a
+stated zoom does to the daemon's geometry is :func:`zoom_off_calibration`'s, used by
+:mod:`onboard.pipeline.frame_pipeline` and the watchdog: beyond 0.5 % of 1.0 it is off, and stays off until
+within half that (hysteresis).
 
 then ``height * width * depth`` bytes of pixels, row-major (row 0 is the top of the image,
 see "Image" in :mod:`onboard.core.frames`), nothing after them.
@@ -61,6 +63,7 @@ __all__ = [
     "check_payload_size",
     "ZOOM_NOT_STATED",
     "ZOOM_TOLERANCE",
+    "ZOOM_PLAUSIBLE",
     "zoom_off_calibration",
 ]
 
@@ -90,6 +93,10 @@ ZOOM_NOT_STATED = 0.0
 #: the line of sight's own 1 sigma there (0.3 px centroid and 0.12 deg attitude: 1.6 px); a zoom stated as 1.0
 #: through a float32 or a lens encoder's rounding stays well within it
 ZOOM_TOLERANCE = 0.005
+#: the zooms a frame may state (relative to the calibrated one): beyond them the field is not a zoom but stray bytes
+#: (a sender that leaves the old padding uninitialised), read as not stated and counted (``frame_zoom_invalid``)
+ZOOM_PLAUSIBLE = (0.01, 100.0)
+_ZOOM_PLAUSIBLE_F32 = tuple(_F32.unpack(_F32.pack(b))[0] for b in ZOOM_PLAUSIBLE)  # as a frame carries them
 
 #: Every value ``IrFrameError.reason`` can take.
 REJECT_REASONS = frozenset({"short", "magic", "version", "encoding", "size", "too_large", "dims", "field"})
@@ -174,8 +181,12 @@ class IrFrame:
 
     @property
     def zoom_invalid(self) -> bool:
-        """The zoom field holds a value no zoom can have (not finite, or negative): read as not stated."""
-        return not (math.isfinite(self.zoom) and self.zoom >= 0.0)
+        """The zoom field holds a value no camera's zoom is: not finite, negative, or (not 0.0, "not stated") outside
+        :data:`ZOOM_PLAUSIBLE` (stray bytes read as a float32 are mostly subnormal or huge): read as not stated."""
+        z = self.zoom
+        if z == ZOOM_NOT_STATED:
+            return False
+        return not (math.isfinite(z) and _ZOOM_PLAUSIBLE_F32[0] <= z <= _ZOOM_PLAUSIBLE_F32[1])
 
     @property
     def stated_zoom(self) -> float | None:
@@ -210,10 +221,12 @@ def encode_irframe(frame: IrFrame) -> bytes:
     return b"".join((header, px.data.cast("B")))
 
 
-def zoom_off_calibration(stated_zoom: float | None, tolerance: float = ZOOM_TOLERANCE) -> bool:
+def zoom_off_calibration(stated_zoom: float | None, was_off: bool = False, tolerance: float = ZOOM_TOLERANCE) -> bool:
     """Whether a frame's :attr:`IrFrame.stated_zoom` is not the zoom ``camera.intrinsics`` were calibrated at:
-    more than ``tolerance`` (relative) from 1.0.  Not stated (None) is taken as calibrated, as before the field."""
-    return stated_zoom is not None and abs(stated_zoom - 1.0) > tolerance
+    more than ``tolerance`` (relative) from 1.0, or, ``was_off`` (the last frame's was not), more than half of it: a
+    zoom read at the tolerance's edge (a lens encoder's last digit) would otherwise withhold every other frame and
+    restart the estimator at each.  Not stated (None) is taken as calibrated, as before the field."""
+    return stated_zoom is not None and abs(stated_zoom - 1.0) > (tolerance / 2 if was_off else tolerance)
 
 
 def check_payload_size(nbytes: int, max_bytes: int = DEFAULT_MAX_BYTES) -> None:

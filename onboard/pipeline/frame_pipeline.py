@@ -637,7 +637,7 @@ class FramePipeline:
                 "(the frame is tracked as before the field); check the sender's IRF1 header, offset 28 (float32)",
             )
         self.last_zoom = frame.stated_zoom
-        self._zoom_off = zoom_off_calibration(self.last_zoom)
+        self._zoom_off = zoom_off_calibration(self.last_zoom, was_off=self._zoom_off)
         if self._zoom_off:
             self.frames_withheld_zoom += 1
 

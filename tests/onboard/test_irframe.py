@@ -316,3 +316,26 @@ def test_a_zoom_that_does_not_fit_a_float32_or_is_no_number_is_refused_by_the_co
 )
 def test_zoom_off_calibration_beyond_half_a_percent(stated, off):
     assert zoom_off_calibration(stated) is off
+
+
+@pytest.mark.parametrize(
+    "stated, off", [(1.004, True), (1.003, True), (1.002, False), (0.997, True), (1.0, False), (None, False)]
+)
+def test_once_off_a_zoom_clears_only_within_half_the_tolerance(stated, off):
+    """A lens read at the tolerance's edge (1.005 +- its last digit) would withhold every other frame and restart the
+    estimator at each: once off, a zoom stays off until within a quarter of a percent."""
+    assert zoom_off_calibration(stated, was_off=True) is off
+
+
+@pytest.mark.parametrize("zoom", [1e-45, 1e-3, 1e3, 3.0e38])
+def test_a_zoom_outside_the_plausible_range_is_stray_bytes_read_as_not_stated(zoom):
+    """The old padding left uninitialised reads mostly as a subnormal or a huge float32: not a zoom, so it must not
+    withhold every line of sight."""
+    g = decode_irframe(_header(zoom=zoom) + b"\x00" * 40)
+    assert g.zoom_invalid and g.stated_zoom is None
+
+
+@pytest.mark.parametrize("zoom", [0.0, 0.01, 0.5, 30.0, 100.0])
+def test_zooms_a_camera_states_are_taken(zoom):
+    g = decode_irframe(_header(zoom=zoom) + b"\x00" * 40)
+    assert not g.zoom_invalid and g.stated_zoom == (None if zoom == 0.0 else pytest.approx(zoom))
