@@ -899,8 +899,12 @@ def _stop_fork_server() -> None:
     """SIGKILL the workers' fork server (if any).  One that is still importing its preload reads neither its pipe
     from this process nor SIGINT (blocked: :func:`_start_fork_server`) until that is done, a second or more: a daemon
     stopped meanwhile left it running past its own exit, holding the daemon's stderr open, and it then forked a worker
-    for the gone daemon.  multiprocessing reaps it, and starts another, when a worker is next spawned.  Every :class:`ProcessEstimator` of this process shares it: one closed while another spawns makes
-    that spawn fail (counted, tried again after the back-off)."""
+    for the gone daemon.  multiprocessing reaps it, and starts another, when a worker is next spawned.
+
+    Every :class:`ProcessEstimator` of this process shares it (the daemon has one; only tests make several): one
+    closed during its start makes another's spawn fail (counted, tried again after the back-off) and makes its running
+    worker, whose liveness pipe the fork server holds, look dead: replaced, the old process left until its own pipe
+    closes."""
     from multiprocessing import forkserver
 
     pid = getattr(forkserver._forkserver, "_forkserver_pid", None)  # private: the stdlib has no public stop
