@@ -178,7 +178,10 @@ class GuidanceTap:
                     # the target it was planned for is lost, another one, or its estimate started again (a new
                     # estimate_epoch: a reset holds nothing from before): no manoeuvre for it
                     if self._target is _LOST:
-                        self._end_advice("target_lost")
+                        # a target still measured, with a pose, whose line of sight the daemon withholds (a zoom, a
+                        # camera or gimbal mismatch: the status's geometry) is not lost: say which
+                        withheld = track.measurement_valid and track.pose_valid and track.los is None
+                        self._end_advice("geometry_withheld" if withheld else "target_lost")
                     elif isinstance(advice[2], tuple) and advice[2][0] == self._target[0]:
                         self._end_advice("estimate_reset")
                     else:

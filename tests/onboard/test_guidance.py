@@ -953,3 +953,31 @@ def test_no_manoeuvre_is_planned_out_of_the_geofence(planner):
     if a.v_ned_mps is not None:
         path, _ = candidate_path(obs.p_ned_m, obs.v_ned_mps, a.v_ned_mps, cfg.max_accel_mps2, t)
         assert cfg.inside_geofence(path)
+
+
+def test_an_advice_ended_by_withheld_geometry_says_so_not_target_lost():
+    """A frame stating a zoom the intrinsics are not for (or a camera / gimbal mismatch) keeps the target measured
+    with a pose, its line of sight and position withheld: the advice ends, as for a lost target, but the status
+    said 'target_lost' of a target still tracked in 2-D (a newcomer's walkthrough)."""
+    from onboard.app.observers import FrameResult
+
+    now = [100.0]
+    tap, _link, _sent = _in_loop_tap(now)
+    track = _ranging_track()
+    assert tap.step(track, _pose(), now[0]) is not None and tap._advice is not None
+    no_position = {
+        k: None
+        for k in ("p_ned_m", "lat_deg", "lon_deg", "alt_m", "v_ned_mps", "cov_p_ned_m2", "cov_v_ned_m2ps2", "range_m")
+    }
+    withheld = dataclasses.replace(
+        track,
+        measurement_valid=True,
+        u_px=320.0,
+        v_px=256.0,
+        pose_valid=True,
+        los=None,
+        range_sigma_ratio=None,
+        **no_position,
+    )
+    tap.on_frame(None, FrameResult(0, True, _pose(), withheld, None))
+    assert tap._advice is None and tap.status()["setpoints"]["advice_ends"] == {"geometry_withheld": 1}
