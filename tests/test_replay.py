@@ -44,6 +44,16 @@ def test_compare_tracks_reports_fields_and_distances():
     assert diffs[0].d_uv_px == 0.0
 
 
+def test_a_recording_made_before_a_key_the_replay_states_compares_identical():
+    """A recording from a daemon before ``los_sigma_bias_deg`` lacks it; its replay states it (the recorded config's
+    bias): not a difference, so an older recording still replays identical.  Where both state it, it is compared."""
+    rec = {"seq": 1, "time_boot_us": 10, "los_sigma_el_deg": 0.11, "estimate_epoch": 0}
+    replayed = {**rec, "los_sigma_bias_deg": 0.1, "compensated_us": 0}
+    assert compare_tracks([rec], [replayed]) == ([], 1, 0)
+    diffs, _, _ = compare_tracks([{**rec, "los_sigma_bias_deg": 0.2}], [replayed])
+    assert [d.fields for d in diffs] == [("los_sigma_bias_deg",)]
+
+
 def test_a_replayed_track_takes_the_utc_stamp_of_the_recorded_frame():
     """Replayed tracks had null UTC stamps on every frame (the daemon maps the boot clock through the autopilot's
     SYSTEM_TIME, which the pipeline does not see): a replay fed to the fleet fusion fell back to arrival times."""

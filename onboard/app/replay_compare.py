@@ -74,6 +74,14 @@ def _matched(
 
 #: keys added to the track after recordings that lack them were made, with the value their absence means
 _ABSENT_MEANS = {"compensated_us": 0, "estimate_epoch": 0}
+#: ... and keys whose absence means "not stated", which a replay does state: compared only where both have them
+_ABSENT_UNSTATED = frozenset({"los_sigma_bias_deg"})
+
+
+def _differs(a: dict, b: dict, k: str) -> bool:
+    if k in _ABSENT_UNSTATED and (k not in a or k not in b):
+        return False
+    return a.get(k, _ABSENT_MEANS.get(k)) != b.get(k, _ABSENT_MEANS.get(k))
 
 
 def compare_tracks(recorded: list, replayed: list) -> tuple[list[FrameDiff], int, int]:
@@ -82,9 +90,7 @@ def compare_tracks(recorded: list, replayed: list) -> tuple[list[FrameDiff], int
     pairs, unmatched = _matched(recorded, replayed)
     diffs = []
     for a, b in pairs:
-        names = tuple(
-            sorted(k for k in set(a) | set(b) if a.get(k, _ABSENT_MEANS.get(k)) != b.get(k, _ABSENT_MEANS.get(k)))
-        )
+        names = tuple(sorted(k for k in set(a) | set(b) if _differs(a, b, k)))
         if not names:
             continue
         dp = duv = None

@@ -34,6 +34,11 @@ los_az_deg          number or null               (new in /2) its azimuth, degree
 los_el_deg          number or null               (new in /2) its elevation, degrees, positive up, [-90, 90]
 los_sigma_az_deg    number or null               (new in /2) 1-sigma of ``los_az_deg`` (formula below)
 los_sigma_el_deg    number or null               (new in /2) 1-sigma of ``los_el_deg``
+los_sigma_bias_deg  number or null               (new, optional; null when absent) the share of the line of
+                                                 sight's sigma that is a constant attitude bias, 1 sigma per
+                                                 axis, degrees: the daemon's ``estimator.attitude_bias_sigma_deg``
+                                                 (``s_b`` below); null without a line of sight.  A fleet fusion
+                                                 takes it as the vehicle's attitude-bias prior
 camera_ned_m        [n, e, d] or null            (new in /2) the line of sight's origin: the camera, local NED
 lat_deg, lon_deg    number or null               target WGS84 latitude / longitude, degrees
 alt_m               number or null               target altitude, metres AMSL (treated as WGS84, see frames)
@@ -81,7 +86,9 @@ The line-of-sight keys (``los_*``, ``camera_ned_m``) are set on every frame with
 (``measurement_valid``) and a pose, with or without a 3-D estimate: they need no range.  A coasting frame's
 centre is the tracker's prediction, whose error no pixel sigma bounds: it gets none.
 Non-finite numbers are never written (JSON has no NaN): they become null.  :func:`track_from_json`
-reads /1 and /2.
+reads /1 and /2.  The keys marked optional were added to /2 without a new name: a reader ignores keys it does not
+know (:func:`track_from_json`; the recorded JSON Schema lists its keys without closing the object to others, and
+a recording carries the schema of the messages beside it), and reads a missing one as its stated default.
 
 Line of sight and its 1-sigma (:func:`line_of_sight_ned`): the ideal normalised image point
 ``(x, y)`` of ``(u_px, v_px)`` (distortion removed) gives ``l = R_ned_from_cam (x, y, 1) / |(x, y, 1)|``;
@@ -248,6 +255,8 @@ def _utc_fields(time_unix_us, time_unix_sigma_us) -> tuple[int | None, int | Non
 
 
 SIGMA_AZ_CAP_DEG = 180.0  # an azimuth near the zenith/nadir is unknown, not infinitely uncertain
+#: an attitude bias beyond a right angle is no attitude solution at all (the fusion's --attitude-bias-deg bound)
+SIGMA_BIAS_MAX_DEG = 90.0
 _UNIT_TOL = 1e-6
 
 
@@ -258,7 +267,9 @@ class LineOfSight:
     ``u_ned``: unit vector (3,) camera -> target.  ``azimuth_deg``: from north towards east,
     (-180, 180]; ``elevation_deg``: positive up, [-90, 90] (conventions in :mod:`onboard.core.frames`).
     ``sigma_azimuth_deg`` / ``sigma_elevation_deg``: 1-sigma (module docstring).  ``p_cam_ned_m``:
-    the camera's position (3,), the ray's origin.
+    the camera's position (3,), the ray's origin.  ``sigma_bias_deg``: the share of those sigmas that is a constant
+    attitude bias, 1 sigma per axis (``s_b``, module docstring), or None where not stated (a reader of a track from a
+    daemon before the key).
     """
 
     u_ned: tuple[float, float, float]
@@ -267,6 +278,7 @@ class LineOfSight:
     sigma_azimuth_deg: float
     sigma_elevation_deg: float
     p_cam_ned_m: tuple[float, float, float]
+    sigma_bias_deg: float | None = None
 
     def __post_init__(self) -> None:
         # each field set again only when its checked value is another object (a list made a tuple, an int a
@@ -295,14 +307,30 @@ class LineOfSight:
                 raise InputError(f"LineOfSight.{name} must be in [0, {SIGMA_AZ_CAP_DEG:g}] deg, got {v}")
             if v is not given:
                 object.__setattr__(self, name, v)
+        given = self.sigma_bias_deg
+        if given is not None:
+            v = _finite(given, "los.sigma_bias_deg")
+            if not 0 <= v <= SIGMA_BIAS_MAX_DEG:
+                raise InputError(
+                    f"LineOfSight.sigma_bias_deg must be None or in [0, {SIGMA_BIAS_MAX_DEG:g}] deg, got {v}"
+                )
+            if v is not given:
+                object.__setattr__(self, "sigma_bias_deg", v)
 
 
 def line_of_sight_ned(
-    uv_px, intrinsics: PinholeIntrinsics, q_ned_from_cam, p_cam_ned_m, pixel_sigma_px: float, attitude_sigma_rad: float
+    uv_px,
+    intrinsics: PinholeIntrinsics,
+    q_ned_from_cam,
+    p_cam_ned_m,
+    pixel_sigma_px: float,
+    attitude_sigma_rad: float,
+    attitude_bias_sigma_rad: float | None = None,
 ) -> LineOfSight:
     """The line of sight of pixel ``uv_px`` seen by a camera at ``(p_cam_ned_m, q_ned_from_cam)``.
 
-    ``attitude_sigma_rad``: the total 1-sigma attitude error per axis, ``sqrt(s_w^2 + s_b^2)``.
+    ``attitude_sigma_rad``: the total 1-sigma attitude error per axis, ``sqrt(s_w^2 + s_b^2)``;
+    ``attitude_bias_sigma_rad``: its bias ``s_b``, stated as the result's ``sigma_bias_deg`` (None: not stated).
     First-order covariance propagation as in the module docstring; raises :class:`InputError` on
     non-finite input.
     """
@@ -358,6 +386,7 @@ def line_of_sight_ned(
         sigma_azimuth_deg=s_az,
         sigma_elevation_deg=s_el,
         p_cam_ned_m=_vec3(p_cam_ned_m, "los.p_cam_ned_m"),
+        sigma_bias_deg=None if attitude_bias_sigma_rad is None else math.degrees(attitude_bias_sigma_rad),
     )
 
 
@@ -575,6 +604,7 @@ def track_to_json(track: Track) -> dict[str, Any]:
         "los_el_deg": None if los is None else los.elevation_deg,
         "los_sigma_az_deg": None if los is None else los.sigma_azimuth_deg,
         "los_sigma_el_deg": None if los is None else los.sigma_elevation_deg,
+        "los_sigma_bias_deg": None if los is None else los.sigma_bias_deg,
         "camera_ned_m": None if los is None else list(los.p_cam_ned_m),
         "lat_deg": track.lat_deg,
         "lon_deg": track.lon_deg,
@@ -649,6 +679,15 @@ TRACK_JSON_KEYS: tuple[tuple[str, dict[str, Any]], ...] = (
     ("los_el_deg", {**_NUM, "description": "its elevation, degrees, positive up, [-90, 90]"}),
     ("los_sigma_az_deg", {**_NUM, "description": "1-sigma of los_az_deg, degrees"}),
     ("los_sigma_el_deg", {**_NUM, "description": "1-sigma of los_el_deg, degrees"}),
+    (
+        "los_sigma_bias_deg",
+        {
+            **_NUM,
+            "description": "the share of the line of sight's sigma that is a constant attitude bias, 1 sigma per "
+            "axis, degrees (the daemon's estimator.attitude_bias_sigma_deg); null without a line of sight or when "
+            "not stated",
+        },
+    ),
     ("camera_ned_m", _vec3_schema("the line of sight's origin: the camera, local NED, metres")),
     ("lat_deg", {**_NUM, "description": "target WGS84 latitude, degrees"}),
     ("lon_deg", {**_NUM, "description": "target WGS84 longitude, degrees"}),
@@ -775,6 +814,7 @@ def _track_from_json(obj: Mapping[str, Any] | str | bytes) -> Track:
                 sigma_azimuth_deg=obj["los_sigma_az_deg"],
                 sigma_elevation_deg=obj["los_sigma_el_deg"],
                 p_cam_ned_m=obj["camera_ned_m"],
+                sigma_bias_deg=obj.get("los_sigma_bias_deg"),  # optional: a daemon before it states none
             )
         except KeyError as exc:
             raise InputError(f"track message: los_ned without {exc.args[0]!r}") from None

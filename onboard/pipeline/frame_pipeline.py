@@ -43,7 +43,8 @@ Steps of :meth:`FramePipeline.process` (time ``t = frame.time_boot_us``, boot cl
    last one coasted to it and corrected by its line of sight (:mod:`onboard.pipeline.coast`).
 5. Track: image fields always; the line of sight in local NED with its 1-sigma
    (:func:`onboard.core.track.line_of_sight_ned`, from ``estimator.pixel_sigma_px`` and the attitude white
-   and bias sigmas) whenever there is a target centre and a pose, with or without an estimate;
+   and bias sigmas, the bias's share stated as ``los_sigma_bias_deg``) whenever there is a target centre and a
+   pose, with or without an estimate;
    position fields (WGS84 through :func:`onboard.core.frames.geodetic_from_ned`) whenever the estimate is
    finite and an origin is known, ``observable`` grading them (``output.unobservable_positions:
    false`` publishes them only when observable, as ``irtrack.track/1`` did).
@@ -309,6 +310,9 @@ class FramePipeline:
         self._pixel_sigma_px = float(ec.pixel_sigma_px)
         #: the camera attitude's 1-sigma per axis the lines of sight carry (the track's; the objects message's too)
         self.attitude_sigma_rad = math.radians(math.hypot(ec.attitude_white_sigma_deg, ec.attitude_bias_sigma_deg))
+        #: ... and its constant part, which each line of sight states (``los_sigma_bias_deg``): a fleet fusion takes
+        #: it as this vehicle's attitude-bias prior instead of being configured with it a second time
+        self.attitude_bias_sigma_rad = math.radians(ec.attitude_bias_sigma_deg)
         f_px = math.sqrt(self.intrinsics.fx_px * self.intrinsics.fy_px)
         self._bearing_sigma_rad = math.hypot(self._pixel_sigma_px / f_px, self.attitude_sigma_rad)
         self._residuals: collections.deque = collections.deque()  # (time_boot_us, z_u^2 + z_v^2)
@@ -881,6 +885,7 @@ class FramePipeline:
                 pose.p_cam_ned_m,
                 self._pixel_sigma_px,
                 self.attitude_sigma_rad,
+                self.attitude_bias_sigma_rad,
             )
         except (InputError, ValueError, FloatingPointError) as exc:
             self.counter.count("los_invalid", str(exc))

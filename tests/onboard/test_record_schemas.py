@@ -27,7 +27,7 @@ SUMMARY = {"n": 0, "p50": None, "p99": None, "max": None}
 
 
 def _full_track() -> Track:
-    los = LineOfSight((1.0, 0.0, 0.0), 0.0, 0.0, 0.1, 0.1, (0.0, 0.0, -100.0))
+    los = LineOfSight((1.0, 0.0, 0.0), 0.0, 0.0, 0.1, 0.1, (0.0, 0.0, -100.0), sigma_bias_deg=0.08)
     return Track(
         "uav1", 9, 1_000_000, "tracking", track_id=2, measurement_valid=True, u_px=320.5, v_px=256.25,
         bbox=(310.0, 250.0, 20.0, 12.0), pose_valid=True, los=los, origin=ORIGIN, lat_deg=47.4, lon_deg=8.5,

@@ -80,6 +80,7 @@ def tracks(draw) -> Track:
             sigma_azimuth_deg=draw(st.floats(0.0, 180.0)),  # a sigma beyond the circle is refused
             sigma_elevation_deg=draw(st.floats(0.0, 180.0)),
             p_cam_ned_m=np.array(draw(st.tuples(finite, finite, finite))),
+            sigma_bias_deg=draw(st.one_of(st.none(), st.floats(0.0, 90.0))),
         )
     if with_pos:
         a = np.array(draw(st.lists(finite, min_size=9, max_size=9))).reshape(3, 3) / 1e3

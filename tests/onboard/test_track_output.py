@@ -29,7 +29,7 @@ from onboard.core.track import (
 from onboard.estimation.map_estimator import across_range_widened
 from onboard.io.mavlink_wire import geo_status_fields
 from onboard.pipeline.frame_pipeline import FramePipeline, make_tracker
-from tests.fakes import idle_status, positioned_track
+from tests.fakes import idle_status, positioned_track, single_chain
 from tests.onboard.test_pipeline import Rig
 
 LOS_TOL_DEG = 0.05  # centroid error ~0.03 px at f = 765 px is ~0.002 deg; the pointing is exact
@@ -68,6 +68,35 @@ def test_no_line_of_sight_without_a_pose():
     tr = rig.pipe.process(rig.scene.frame(0), 0)  # no telemetry fed
     j = track_to_json(tr)
     assert j["u_px"] is not None and not j["pose_valid"] and all(j[key] is None for key in LOS_KEYS)
+    assert "los_sigma_bias_deg" in j and j["los_sigma_bias_deg"] is None
+
+
+@pytest.mark.parametrize("bias_deg", [0.3, 0.0])
+def test_each_line_of_sight_states_the_attitude_bias_share_of_its_sigma_as_configured(bias_deg):
+    """``los_sigma_bias_deg`` is the daemon's ``estimator.attitude_bias_sigma_deg`` on every frame with a line of
+    sight (a fleet fusion takes it as the vehicle's prior), null on one without, and survives the JSON round trip;
+    the sigmas hold it (white and bias in quadrature)."""
+    config = single_chain()
+    config = dataclasses.replace(
+        config, estimator=dataclasses.replace(config.estimator, attitude_bias_sigma_deg=bias_deg)
+    )
+    rig = Rig(estimator=None, config=config)
+    assert track_to_json(rig.pipe.process(rig.scene.frame(0), 0))["los_sigma_bias_deg"] is None  # no pose yet
+    tracks = rig.run(6, start=1)
+    for tr in tracks:
+        j = track_to_json(tr)
+        assert j["los_sigma_bias_deg"] == pytest.approx(bias_deg, rel=1e-12)
+        assert min(j["los_sigma_az_deg"], j["los_sigma_el_deg"]) >= bias_deg
+        assert track_from_json(track_to_bytes(tr)).los.sigma_bias_deg == pytest.approx(bias_deg, rel=1e-12)
+
+
+def test_a_track_without_the_bias_share_reads_as_not_stated_and_a_bad_one_is_refused_by_name():
+    j = track_to_json(Rig(estimator=None).run(2)[-1])
+    del j["los_sigma_bias_deg"]  # a daemon before the key
+    assert track_from_json(j).los is not None and track_from_json(j).los.sigma_bias_deg is None
+    for bad in (-0.1, 91.0, "0.1", True):
+        with pytest.raises(InputError, match="sigma_bias_deg"):
+            track_from_json({**j, "los_sigma_bias_deg": bad})
 
 
 def test_line_of_sight_sigma_follows_the_documented_formula():
