@@ -102,9 +102,11 @@ def track_payload(
     origin: GeodeticOrigin,
     time_unix_us: int | None = None,
     track_id: int = 1,
+    bias_sigma_rad: float | None = None,
 ) -> dict:
     """The ``irtrack.track/2`` dict a daemon would publish for ``los`` (no 3-D position), plus
-    ``time_unix_us`` when given."""
+    ``time_unix_us`` when given; ``bias_sigma_rad``: the attitude bias's share of its sigmas the line of sight states
+    (``los_sigma_bias_deg``; None: states none, as a daemon before the key)."""
     u = los.los_ned
     az = math.degrees(math.atan2(u[1], u[0]))
     el = math.degrees(math.atan2(-u[2], math.hypot(u[0], u[1])))
@@ -125,6 +127,7 @@ def track_payload(
             sigma_azimuth_deg=min(math.degrees(los.sigma_az_rad), 180.0),
             sigma_elevation_deg=math.degrees(los.sigma_el_rad),
             p_cam_ned_m=tuple(los.p_cam_ned_m.tolist()),
+            sigma_bias_deg=None if bias_sigma_rad is None else math.degrees(bias_sigma_rad),
         ),
         origin=origin,
     )

@@ -68,9 +68,17 @@ counted and warned once naming the vehicle and the remedy, the vehicle's objects
 stay out until the clash clears (``name_clash_cleared``, INFO); the status lists it under ``name_clash``.
 
 Noise: ``--attitude-bias-deg`` / ``--camera-white-m`` (> 0) / ``--camera-offset-m`` for every vehicle, and
-``--vehicle-noise`` for one vehicle's keys where they differ (e.g. ``uav2:attitude_bias_deg=0.5``).  A vehicle
-whose rays showed an attitude bias beyond its prior (``attitude_bias_above_prior``) is listed in the status under
-``attitude_bias_deg`` with the bias its rays suggested last, deg.
+``--vehicle-noise`` for one vehicle's keys where they differ (e.g. ``uav2:attitude_bias_deg=0.5``).  A vehicle's
+attitude-bias prior (the share of each ray's published sigma the solve takes as a constant common to its rays, not
+white noise) is, from its newest ray on: ``--vehicle-noise NAME:attitude_bias_deg=..`` where that names it (the
+operator's word wins; a track stating a value more than :data:`BIAS_APART_FACTOR` (1.5) from it is warned of once,
+naming both), else what its tracks state (``los_sigma_bias_deg``: its daemon's
+``estimator.attitude_bias_sigma_deg``), else ``--attitude-bias-deg`` (a daemon before the key).  Said at INFO once per
+vehicle and again if it changes; the status gives each vehicle's under ``attitude_bias_prior``: ``{deg, source,
+stated_deg}`` with ``source`` ``vehicle_noise`` | ``track`` | ``attitude_bias_deg`` and ``stated_deg`` what its newest
+track stated (null: nothing).  A vehicle whose rays showed an attitude bias beyond its prior
+(``attitude_bias_above_prior``) is listed in the status under ``attitude_bias_deg`` with the bias its rays suggested
+last, deg.
 
 Exit codes: 0 after ``--seconds`` or on SIGTERM; 130 on Ctrl-C; 2 for invalid options or a session that
 cannot open (one line on stderr).
@@ -90,7 +98,7 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Collection, Mapping, Sequence
 
 import numpy as np
 
@@ -107,6 +115,7 @@ from onboard.estimation.fleet import (
     Ray,
     VehicleNoise,
     fleet_verdict,
+    noise_for,
     triangulate,
 )
 from onboard.estimation.fleet_tracker import FleetTracker
@@ -129,7 +138,7 @@ from onboard.io.fleet_wire import (
 )
 from onboard.io.zenoh_session import ZenohConfig, check_vehicle_name, open_session
 
-__all__ = ["FLEET_STATUS_SCHEMA", "EVENTS", "Fusion", "build_parser", "zenoh_settings", "main", "warm_up"]
+__all__ = ["FLEET_STATUS_SCHEMA", "EVENTS", "BiasPrior", "Fusion", "build_parser", "zenoh_settings", "main", "warm_up"]
 
 log = logging.getLogger(__name__)
 
@@ -156,6 +165,27 @@ REANCHOR_AFTER_S = 3.0
 #: ... at most once in this long (and never back to a vehicle whose frame was given up): two vehicles that far apart
 #: cannot be fused, and the frame must not flicker
 REANCHOR_HOLD_S = 30.0
+#: a vehicle's tracks stating an attitude bias more than this factor from its --vehicle-noise attitude_bias_deg are
+#: warned of (once): one of the two is not its attitude (the scatter test's factor, BIAS_ABOVE_PRIOR_FACTOR)
+BIAS_APART_FACTOR = 1.5
+
+
+@dataclasses.dataclass(frozen=True)
+class BiasPrior:
+    """A vehicle's attitude-bias prior in use: ``deg`` (1 sigma per axis), ``source`` (``vehicle_noise``: the
+    operator's --vehicle-noise; ``track``: its tracks' ``los_sigma_bias_deg``; ``attitude_bias_deg``: the global
+    option, its tracks stating none) and ``stated_deg``, what its newest track stated (None: nothing)."""
+
+    deg: float
+    source: str
+    stated_deg: float | None
+
+
+_BIAS_SOURCE_TEXT = {
+    "vehicle_noise": "from --vehicle-noise",
+    "track": "stated by its tracks (los_sigma_bias_deg)",
+    "attitude_bias_deg": "from --attitude-bias-deg (its tracks state none: a daemon before los_sigma_bias_deg)",
+}
 
 
 class Inbox:
@@ -249,6 +279,7 @@ class Fusion:
         silent_after_s: float = 1.0,
         stream_check: StreamCheck | None = None,
         max_time_sigma_s: float = 0.05,
+        bias_named: Collection[str] = (),
     ) -> None:
         self.tracker = tracker
         self.clock = clock
@@ -287,6 +318,11 @@ class Fusion:
         #: vehicles forgotten since the owner last looked (it drops what it keeps for them: their publishers)
         self.forgotten: list[str] = []
         self._reanchored_at = -math.inf
+        #: the vehicles whose attitude-bias prior the operator gave (--vehicle-noise NAME:attitude_bias_deg=..): their
+        #: tracks' own (los_sigma_bias_deg) does not replace it
+        self.bias_named = frozenset(bias_named)
+        self._bias_priors: dict[str, BiasPrior] = {}
+        self._bias_apart_warned: set[str] = set()
 
     def _check_clashes(self, now_unix_s: float) -> list[str]:
         clashing = self.stream_check.clashing(now_unix_s)
@@ -498,6 +534,7 @@ class Fusion:
         self._time_sources[vehicle] = source
         self._origins[vehicle] = track.origin
         self._cameras[vehicle] = np.asarray(los.p_cam_ned_m)
+        self._take_bias_prior(vehicle, los.sigma_bias_deg)
         self.rays += 1
         tid = self.tracker.add(ray)
         if tid is not None:
@@ -519,6 +556,45 @@ class Fusion:
             self._silent.discard(vehicle)
             self.counter.count("vehicle_back", f"{vehicle}: tracks again", level=logging.INFO, subject=vehicle)
         return True
+
+    def _take_bias_prior(self, vehicle: str, stated_deg: float | None) -> None:
+        """Set ``vehicle``'s attitude-bias prior from its newest ray's track (module docstring, "Noise"): the
+        operator's ``--vehicle-noise NAME:attitude_bias_deg=..`` where given (WARNING once when the track states one
+        more than :data:`BIAS_APART_FACTOR` apart), else what the track states, else ``--attitude-bias-deg``.  Said at
+        INFO for each vehicle when first set and whenever it changes (a daemon restarted with another setting)."""
+        configured = noise_for(self.tracker.configured_noise, vehicle)
+        option_deg = math.degrees(configured.attitude_bias_sigma_rad)
+        if vehicle in self.bias_named:
+            prior = BiasPrior(option_deg, "vehicle_noise", stated_deg)
+            if stated_deg is not None and vehicle not in self._bias_apart_warned:
+                low, high = sorted((stated_deg, option_deg))
+                if high > BIAS_APART_FACTOR * low:
+                    self._bias_apart_warned.add(vehicle)
+                    log.warning(
+                        "%s: its tracks state an attitude-bias sigma of %.3g deg (its daemon's "
+                        "estimator.attitude_bias_sigma_deg), --vehicle-noise %s:attitude_bias_deg=%g says %g deg: the "
+                        "option's is used; one of them is not this vehicle's attitude (correct the daemon's setting, "
+                        "or drop the option to take the track's)",
+                        vehicle,
+                        stated_deg,
+                        vehicle,
+                        option_deg,
+                        option_deg,
+                    )
+        elif stated_deg is not None:
+            prior = BiasPrior(stated_deg, "track", stated_deg)
+        else:
+            prior = BiasPrior(option_deg, "attitude_bias_deg", None)
+        last = self._bias_priors.get(vehicle)
+        self._bias_priors[vehicle] = prior
+        if last is not None and (last.deg, last.source) == (prior.deg, prior.source):
+            return
+        if prior.source == "track":
+            own = dataclasses.replace(configured, attitude_bias_sigma_rad=math.radians(prior.deg))
+            self.tracker.set_vehicle_noise(vehicle, own)
+        else:
+            self.tracker.set_vehicle_noise(vehicle, None)
+        log.info("%s: attitude-bias prior %.3g deg, %s", vehicle, prior.deg, _BIAS_SOURCE_TEXT[prior.source])
 
     def _reanchor_if_alone(self, vehicle: str, origin: GeodeticOrigin, now_unix_s: float) -> None:
         """Give up a fleet frame that only the vehicle which set it has been accepted in, once ``vehicle``'s cameras
@@ -571,8 +647,10 @@ class Fusion:
             self._off_window,
         ):
             kept.pop(v, None)
-        for named in (self._silent, self._clock_refused, self._clock_flagged):
+        for named in (self._silent, self._clock_refused, self._clock_flagged, self._bias_apart_warned):
             named.discard(v)
+        self._bias_priors.pop(v, None)
+        self.tracker.set_vehicle_noise(v, None)
         self.tracker.withdraw(v, "forgotten")
         self.stream_check.forget(v)
         self.clock_check.forget(v)
@@ -672,6 +750,10 @@ class Fusion:
             "name_clash": sorted(self._clashing),
             "attitude_bias_deg": {
                 v: round(math.degrees(b), 3) for v, b in sorted(self.tracker.biases_above_prior_rad.items())
+            },
+            "attitude_bias_prior": {
+                v: {"deg": round(p.deg, 4), "source": p.source, "stated_deg": p.stated_deg}
+                for v, p in sorted(self._bias_priors.items())
             },
             "rejected": {k: n for k, n in counts.items() if k not in EVENTS},
             "events": {k: n for k, n in counts.items() if k in EVENTS},
@@ -924,6 +1006,7 @@ def _main(argv: Sequence[str] | None) -> int:
         clock_check=ClockConsistency(tolerance_s=args.clock_tolerance_ms / 1e3),
         silent_after_s=args.silent_after_s,
         max_time_sigma_s=args.max_time_sigma_ms / 1e3,
+        bias_named=[name for name, values in args.vehicle_noise if "attitude_bias_deg" in values],
     )
     stop = threading.Event()
     session = None

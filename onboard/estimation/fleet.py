@@ -62,8 +62,9 @@ moves by ``v s_t``, a miss across the ray of ``B v s_t``, added to the ray's whi
 estimated velocity (``max_speed_mps`` in every direction before there is one), to the pairing gate with
 ``max_speed_mps`` and to the association gate with the last velocity.
 
-A bias the prior leaves out: a vehicle whose published sigma holds an attitude bias larger than its prior here (its
-daemon configured for a worse attitude than the fusion's ``--attitude-bias-deg``) has the excess taken for white
+A bias the prior leaves out: a vehicle whose published sigma holds an attitude bias larger than its prior here (a
+daemon that states no ``los_sigma_bias_deg`` configured for a worse attitude than the fusion's
+``--attitude-bias-deg``, or a ``--vehicle-noise`` below what its daemon states) has the excess taken for white
 noise, which its rays average away: overconfident.  White noise of that size would scatter the vehicle's rays about
 their own mean; a bias moves them together.  So after the solve each vehicle with at least
 :data:`BIAS_SCATTER_MIN_RAYS` rays in the window has the scatter of its whitened residuals about their mean,

@@ -40,6 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from onboard.core.counters import RejectCounter
+from onboard.core.errors import ConfigError
 from onboard.estimation.fleet import (
     CLOSEST_APPROACH_GATE_CHI2,
     OWN_ESTIMATE_GATE_CHI2,
@@ -59,6 +60,27 @@ from onboard.estimation.map_estimator import NoiseModel
 from onboard.estimation.sliding import BEARING_GATE_CHI2
 
 __all__ = ["FleetTracker"]
+
+
+class _NoiseOver(Mapping[str, NoiseModel]):
+    """The configured noise (one model or one per vehicle) with some vehicles' own models over it (a mapping, as
+    :func:`~onboard.estimation.fleet.triangulate` and the gates take it)."""
+
+    def __init__(self, configured: NoiseModel | Mapping[str, NoiseModel], own: dict[str, NoiseModel]) -> None:
+        self._configured, self._own = configured, own
+
+    def __getitem__(self, vehicle: str) -> NoiseModel:
+        own = self._own.get(vehicle)
+        return own if own is not None else noise_for(self._configured, vehicle)
+
+    def __contains__(self, vehicle: object) -> bool:
+        return vehicle in self._own or isinstance(self._configured, NoiseModel) or vehicle in self._configured
+
+    def __iter__(self):
+        return iter(self._own)
+
+    def __len__(self) -> int:
+        return len(self._own)
 
 
 @dataclass
@@ -102,7 +124,11 @@ class FleetTracker:
         counter: RejectCounter | None = None,
     ) -> None:
         self.config = config or FleetConfig()
-        self.noise = noise if noise is not None else NoiseModel()
+        #: the noise models the tracker was given (the fusion's options); ``noise``: those in use, with each
+        #: vehicle's own set by :meth:`set_vehicle_noise` over them
+        self.configured_noise: NoiseModel | Mapping[str, NoiseModel] = noise if noise is not None else NoiseModel()
+        self.noise: NoiseModel | Mapping[str, NoiseModel] = self.configured_noise
+        self._vehicle_noise: dict[str, NoiseModel] = {}
         self.counter = counter or RejectCounter()
         self._rays: dict[tuple[str, int], deque[Ray]] = {}
         self._owner: dict[tuple[str, int], int] = {}
@@ -146,6 +172,22 @@ class FleetTracker:
 
     def _noise(self, vehicle: str) -> NoiseModel:
         return noise_for(self.noise, vehicle)
+
+    def set_vehicle_noise(self, vehicle: str, model: NoiseModel | None) -> None:
+        """``vehicle``'s noise model from its next ray and solve on (its gates, its solve's priors, the scatter test
+        of a bias beyond its prior), the other vehicles' unchanged; None: the configured one again.  The fusion sets
+        the attitude-bias prior a vehicle's tracks state (``los_sigma_bias_deg``) this way."""
+        if model is None:
+            self._vehicle_noise.pop(vehicle, None)
+        elif not isinstance(model, NoiseModel):
+            raise ConfigError(f"set_vehicle_noise({vehicle!r}): expected a NoiseModel, got {type(model).__name__}")
+        else:
+            self._vehicle_noise[vehicle] = model
+        self.noise = (
+            _NoiseOver(self.configured_noise, dict(self._vehicle_noise))
+            if self._vehicle_noise
+            else self.configured_noise
+        )
 
     def add(self, ray: Ray) -> int | None:
         """Take ``ray``; the target it belongs to (None: unassigned or refused)."""

@@ -15,7 +15,7 @@ from scipy.stats import chi2
 
 from groundsim.evaluation.fleet_synth import SynthTarget, SynthVehicle, measure
 from onboard.core.counters import RejectCounter
-from onboard.core.errors import InputError
+from onboard.core.errors import ConfigError, InputError
 from onboard.estimation.fleet import (
     MIN_BEARING_SIGMA_RAD,
     MIN_RESIDUAL_DOF,
@@ -465,6 +465,25 @@ def test_the_tracker_counts_a_vehicles_bias_beyond_its_prior_and_warns_once_nami
     assert len(warned) == 1
     assert "--vehicle-noise uav2:attitude_bias_deg=0." in warned[0].getMessage()
     assert set(tracker.biases_above_prior_rad) == {"uav2"}
+
+
+@pytest.mark.parametrize("configured", ["one model", "per vehicle"])
+def test_a_vehicles_own_noise_on_the_tracker_replaces_the_configured_one_for_it_alone(configured):
+    """The fusion sets the attitude-bias prior a vehicle's tracks state this way: that vehicle's model changes, every
+    other vehicle keeps the configured one, and None gives the configured one back."""
+    default = NoiseModel(attitude_bias_sigma_rad=math.radians(0.1))
+    uav3 = NoiseModel(camera_position_offset_sigma_m=1.0)
+    noise = default if configured == "one model" else VehicleNoise(default, {"uav3": uav3})
+    tracker = FleetTracker(FleetConfig(), noise)
+    own = dataclasses.replace(default, attitude_bias_sigma_rad=math.radians(0.3))
+    tracker.set_vehicle_noise("uav2", own)
+    assert tracker.noise["uav2"] is own and tracker.noise["uav1"] is default and tracker.configured_noise is noise
+    if configured == "per vehicle":
+        assert tracker.noise["uav3"] is uav3
+    tracker.set_vehicle_noise("uav2", None)
+    assert tracker.noise is noise
+    with pytest.raises(ConfigError, match="uav2"):
+        tracker.set_vehicle_noise("uav2", 0.3)  # type: ignore[arg-type]
 
 
 def test_a_time_sigma_adds_the_targets_motion_across_the_ray_to_the_gate_and_the_solve():
