@@ -89,11 +89,13 @@ class StreamRates:
     def slow(self, now_s: float, rates: list[StreamRate]) -> list[StreamRate]:
         """The streams of ``rates`` (just measured) below :data:`SLOW_FRACTION` of their requested rate, over a window
         that began after their rate was confirmed, :data:`SLOW_PERSIST_S` or more ago.  None while no requested stream
-        brought a message since the look before: the telemetry stopped, which the link's own warnings say (its rates
-        over the window, the silence included, had read as an autopilot capping every stream once a simulator ended);
-        a stream that stays silent while the others arrive is slow (0 Hz)."""
+        brought a message over the last :data:`MIN_SPAN_S` (since the newest look at least that old): the telemetry
+        stopped, which the link's own warnings say (its rates over the window, the silence included, had read as an
+        autopilot capping every stream once a simulator ended); a stream that stays silent while the others arrive is
+        slow (0 Hz).  Not since the look just before: the daemon looks twice in a row (its link status, then this),
+        on the thread that takes the messages, so nothing can arrive between the two."""
         t0 = self._looks[0][0] if self._looks else now_s
-        before = self._looks[-2][1] if len(self._looks) >= 2 else None
+        before = next((counts for t_s, counts in reversed(self._looks) if now_s - t_s >= MIN_SPAN_S), None)
         if before is not None and all(self.counts[mid] == before.get(mid) for mid in self.counts):
             return []
         return [

@@ -78,3 +78,18 @@ def test_a_stream_that_stopped_is_not_slow():
     assert [r.msg_id for r in m.slow(t, m.rates(t))] == [ATT]
     t = _feed(m, t, 6, 100, 0)  # the position alone silent while the attitude arrives: slow (0 Hz)
     assert [r.msg_id for r in m.slow(t, m.rates(t))] == [POS]
+
+
+def test_slow_when_looked_at_twice_in_a_row():
+    """The daemon's watchdog asks the link's status (a look) and then the slow streams (another look) on the thread
+    that takes the messages, microseconds apart: nothing arrives between the two, which is no stopped telemetry.
+    Judged against the look just before, a capped stream was never warned (a router's client capping the position
+    stream at 4 Hz of 25 for 6 s: no stream_rate_low)."""
+    m = _meter()
+    t = _feed(m, 0.0, 1, 100, 25)
+    m.confirmed(ATT, t)
+    m.confirmed(POS, t)
+    t = _feed(m, t, 6, 100, 4)
+    m.rates(t)  # the status's look
+    t_watch = t + 1e-6
+    assert [r.msg_id for r in m.slow(t_watch, m.rates(t_watch))] == [POS]
