@@ -109,8 +109,10 @@ seconds, its own clock) and what it saw; tests feed it a fake clock.  Each condi
     followed one is alive (heard within ``mavlink.heartbeat_timeout_s``): two vehicles with one MAVLink system id on
     the daemon's port (both PX4 and ArduPilot default to 1), or one autopilot over two routes.  Everything from the
     second address is refused (:class:`onboard.io.mavlink_link.MavlinkLink`); mixed, the two had made every line of
-    sight and 3-D position wrong.  The message names both addresses and the id.  Cleared when the second one has not
-    heartbeated for ``mavlink.heartbeat_timeout_s``.
+    sight and 3-D position wrong.  The message names both addresses and the id, and how long the followed one has
+    been silent once it has missed a heartbeat (a router restarted on a new port: it is followed there once the old
+    address has been silent for ``mavlink.heartbeat_timeout_s``).  Cleared when the second one has not heartbeated
+    for ``mavlink.heartbeat_timeout_s``.
 
 ``video_rate``
     The H.264 stream's camera runs at a rate other than ``video.fps`` by more than ``VIDEO_RATE_TOLERANCE``
@@ -506,7 +508,7 @@ class Watchdog:
             "autopilot_duplicate",
             [
                 f"{d.other[0]}:{d.other[1]} heartbeats as MAVLink system {d.sysid} component {d.compid}, which "
-                f"{d.followed[0]}:{d.followed[1]} is and is followed"
+                f"{d.followed[0]}:{d.followed[1]} is and is followed{d.silence()}"
                 for d in senders
             ],
             "two vehicles with one system id on this port (or one autopilot over two routes); everything from the "

@@ -725,7 +725,8 @@ class MavlinkLink:
             self._set_autopilot(src_sys)
         t = self._transport
         if addr is not None and isinstance(t, UdpTransport) and t.kind == "udpin" and t.peer != addr:
-            if not self._address.heartbeat(t, src_sys, src_comp, addr, now, self._peer_alive(now)):
+            age_s = 0.0 if self._last_hb_rx_s is None else now - self._last_hb_rx_s
+            if not self._address.heartbeat(t, src_sys, src_comp, addr, now, self._peer_alive(now), age_s):
                 return
         self._last_hb_rx_s = now
         # the autopilot's mode as its heartbeat says (guidance in the loop sends setpoints only in the accepting mode)

@@ -15,7 +15,11 @@ autopilot that moved (its old address silent for ``heartbeat_timeout_s``, so the
 from a new one) is followed there (``autopilot_address_changed``): a move costs up to ``heartbeat_timeout_s`` of
 telemetry, a shorter window would hand the link to a second vehicle over a radio fade of the first.  A second
 sender heartbeating after the first fell silent that long is followed the same way (nothing tells it from a moved
-autopilot then; the count's log line says it was heard as a second sender).
+autopilot then; the count's log line says it was heard as a second sender).  A router (mavlink-router, MAVProxy)
+that restarts sends from a new port: its first heartbeats come while the old address is silent but not yet timed
+out, so they are refused as a second sender's for the rest of ``heartbeat_timeout_s``; the warning then says how
+long the followed address has been silent (over :data:`SILENT_HINT_S`, a missed 1 Hz heartbeat), so that it does
+not read as two vehicles only.
 
 :class:`~onboard.io.mavlink_link.MavlinkLink` keeps one :class:`AutopilotAddress` and asks it about each autopilot
 heartbeat and each message of the autopilot's system that comes from another address than the followed one.
@@ -31,25 +35,42 @@ from onboard.core.counters import RejectCounter
 from onboard.io.mavlink_config import MavlinkConfig
 from onboard.io.mavlink_transport import UdpTransport
 
-__all__ = ["DuplicateSender", "AutopilotAddress", "MAX_DUPLICATE_SENDERS"]
+__all__ = ["DuplicateSender", "AutopilotAddress", "MAX_DUPLICATE_SENDERS", "SILENT_HINT_S"]
 
 log = logging.getLogger(__name__)
 
 #: second senders of the autopilot's identity remembered (the newest ones): their messages are refused
 MAX_DUPLICATE_SENDERS = 8
+#: the followed address silent this long when a second sender heartbeats: said in the warning (PX4 and ArduPilot
+#: heartbeat at 1 Hz, so past 1.5 s the followed one has missed a heartbeat: a restarted router's new port, or a
+#: fade of the first vehicle)
+SILENT_HINT_S = 1.5
 
 
 @dataclass(frozen=True)
 class DuplicateSender:
     """A second sender of the followed autopilot's identity on a ``udpin`` link (module docstring): ``other``
     heartbeats as system ``sysid`` component ``compid`` while ``followed`` (the address the link follows) is alive.
-    ``heard_s``: its newest heartbeat, on the link's clock."""
+    ``heard_s``: its newest heartbeat, on the link's clock; ``followed_silent_s``: how long before it the followed
+    address's newest heartbeat came."""
 
     sysid: int
     compid: int
     followed: tuple[str, int]
     other: tuple[str, int]
     heard_s: float
+    followed_silent_s: float = 0.0
+
+    def silence(self) -> str:
+        """' (FOLLOWED silent for N s: ...)' when the followed address has missed a heartbeat (:data:`SILENT_HINT_S`),
+        else ''."""
+        if self.followed_silent_s <= SILENT_HINT_S:
+            return ""
+        return (
+            f" ({self.followed[0]}:{self.followed[1]} silent for {self.followed_silent_s:.1f} s: a router restarted "
+            "on a new port reads so, and is followed there once the old address has been silent for "
+            "mavlink.heartbeat_timeout_s)"
+        )
 
 
 class AutopilotAddress:
@@ -63,12 +84,15 @@ class AutopilotAddress:
         #: udpin: addresses that heartbeat as the autopilot while the followed one is alive -> their newest one
         self._duplicates: OrderedDict[tuple[str, int], DuplicateSender] = OrderedDict()
 
-    def heartbeat(self, t: UdpTransport, src_sys: int, src_comp: int, addr, now: float, alive: bool) -> bool:
+    def heartbeat(
+        self, t: UdpTransport, src_sys: int, src_comp: int, addr, now: float, alive: bool, followed_age_s: float = 0.0
+    ) -> bool:
         """A heartbeat of the followed autopilot's system/component from ``addr``, not the address ``t`` (a ``udpin``
         link) follows: False (refused) when it is a second sender's (``alive``: the followed one's newest heartbeat
-        within ``heartbeat_timeout_s``), else True and ``t`` follows ``addr`` (the first address, or a moved one)."""
+        within ``heartbeat_timeout_s``; ``followed_age_s``: how old it is), else True and ``t`` follows ``addr`` (the
+        first address, or a moved one)."""
         if t.peer is not None and alive:
-            self._duplicate(src_sys, src_comp, t.peer, addr, now)
+            self._duplicate(src_sys, src_comp, t.peer, addr, now, followed_age_s)
             return False
         was_second = self._duplicates.pop(addr, None) is not None
         if t.peer is not None:
@@ -107,19 +131,20 @@ class AutopilotAddress:
         )
         return True
 
-    def _duplicate(self, sysid: int, compid: int, followed, other, now: float) -> None:
+    def _duplicate(self, sysid: int, compid: int, followed, other, now: float, followed_age_s: float) -> None:
         """A heartbeat of the followed identity from ``other`` while ``followed`` is alive: a second sender (module
         docstring), remembered so that all it sends is refused; counted, at WARNING the first time it is heard."""
         new = other not in self._duplicates
-        self._duplicates[other] = DuplicateSender(sysid, compid, followed, other, now)
+        dup = DuplicateSender(sysid, compid, followed, other, now, followed_age_s)
+        self._duplicates[other] = dup
         self._duplicates.move_to_end(other)
         while len(self._duplicates) > MAX_DUPLICATE_SENDERS:
             self._duplicates.popitem(last=False)
         self._counters.count(
             "autopilot_duplicate",
             f"{other[0]}:{other[1]} heartbeats as autopilot {sysid}/{compid} too, which {followed[0]}:{followed[1]} "
-            "is: everything it sends is refused (autopilot_duplicate_refused); give each vehicle its own MAV_SYS_ID "
-            "or its own port",
+            f"is{dup.silence()}: everything it sends is refused (autopilot_duplicate_refused); give each vehicle its "
+            "own MAV_SYS_ID or its own port",
             level=logging.WARNING if new else logging.DEBUG,
         )
 

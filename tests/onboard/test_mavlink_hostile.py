@@ -240,6 +240,30 @@ def test_a_second_sender_of_the_autopilots_identity_is_refused_while_the_first_i
     assert twin.received == [] and rig.link.state == LINK_CONNECTED
 
 
+def test_a_second_sender_while_the_followed_one_is_silent_says_how_long(rig, twin, caplog):
+    """A router restarted on a new port (MAVProxy killed and started again within 1.5 s: its first heartbeat from the
+    new port 3.0 s after the last one from the old): refused as a second sender until the old address times out, as
+    before, but the warning says the followed address is silent, not only 'two vehicles with one system id'."""
+    rig.connect()
+    rig.clock.t_s += 3.0
+    with caplog.at_level(logging.WARNING, logger="onboard"):
+        twin.heartbeat()
+        assert rig.drive(lambda: rig.counters["autopilot_duplicate"] == 1)
+    (dup,) = rig.link.duplicate_senders()
+    assert dup.followed_silent_s == pytest.approx(3.0)
+    assert f"{address(rig.ap)[0]}:{address(rig.ap)[1]} silent for 3.0 s: a router restarted" in dup.silence()
+    assert any("silent for 3.0 s" in r.getMessage() for r in caplog.records if r.levelno == logging.WARNING)
+    assert rig.link.peer_address == address(rig.ap)  # still refused until heartbeat_timeout_s
+    # the followed one heard again, the second half a second later: two live senders, no silence named
+    rig.ap.heartbeat()
+    assert rig.drive(lambda: rig.link.heartbeat_age_s() == pytest.approx(0.0))
+    rig.clock.t_s += 0.5
+    twin.heartbeat()
+    assert rig.drive(lambda: rig.counters["autopilot_duplicate"] == 2)
+    (dup,) = rig.link.duplicate_senders()
+    assert dup.followed_silent_s == pytest.approx(0.5) and dup.silence() == ""
+
+
 @pytest.mark.parametrize("heard_before", [False, True], ids=["new-address", "second-sender-before"])
 def test_the_autopilot_moved_after_its_address_went_silent_is_followed(rig, twin, heard_before):
     rig.connect()

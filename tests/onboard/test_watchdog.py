@@ -351,3 +351,15 @@ def test_autopilot_duplicate_names_both_addresses_and_the_id_once(caplog):
     assert sum("autopilot_duplicate" in r.getMessage() and r.levelno == logging.WARNING for r in caplog.records) == 1
     wd.autopilot_duplicate(31.0, [])
     assert wd.active == ()
+
+
+def test_autopilot_duplicate_says_the_followed_one_is_silent():
+    """The followed address silent past a missed heartbeat when the second heartbeats: a router restarted on a new
+    port reads so; the warning says it beside the two-vehicles advice."""
+    from onboard.io.mavlink_peer import DuplicateSender
+
+    wd = _wd()
+    wd.autopilot_duplicate(20.0, [DuplicateSender(1, 1, ("127.0.0.1", 42710), ("127.0.0.1", 51633), 20.0, 3.0)])
+    (w,) = wd.active
+    assert "127.0.0.1:42710 silent for 3.0 s: a router restarted on a new port" in w.message
+    assert "mavlink.heartbeat_timeout_s" in w.message and "MAV_SYS_ID" in w.message
