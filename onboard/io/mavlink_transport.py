@@ -116,7 +116,10 @@ def new_parser(signing, file=None, src_system: int = 0, src_component: int = 0) 
 
 class UdpTransport:
     """One UDP socket of our own.  ``udpin`` binds HOST:PORT and answers only the locked autopilot's
-    address (``peer``); ``udpout`` sends to its fixed HOST:PORT.  Each datagram is parsed alone."""
+    address (``peer``); ``udpout`` sends to its fixed HOST:PORT and takes datagrams from there only (a connected
+    socket: the kernel picks the source address of the route to it, 127.0.0.1 for a router on loopback, and drops
+    what other addresses send; unconnected, its ephemeral port was open on every interface and anyone reaching it
+    was read as the autopilot).  Each datagram is parsed alone."""
 
     datagrams = True
 
@@ -133,6 +136,7 @@ class UdpTransport:
                 self.sock.bind((host, port))
             else:
                 self.fixed = (socket.gethostbyname(host), port)
+                self.sock.connect(self.fixed)
         except Exception:
             self.sock.close()
             raise
@@ -152,11 +156,18 @@ class UdpTransport:
         return data, addr
 
     def write(self, buf: bytes) -> None:
-        dest = self.fixed if self.fixed is not None else self.peer
-        if dest is not None:
-            self.sock.sendto(buf, dest)
+        if self.fixed is not None:
+            try:
+                self.sock.send(buf)
+            except ConnectionRefusedError:
+                pass  # ICMP port unreachable from an earlier send: nobody listens there yet (a router restarting)
+        elif self.peer is not None:
+            self.sock.sendto(buf, self.peer)
         for addr in self.extra:
-            self.sock.sendto(buf, addr)
+            try:
+                self.sock.sendto(buf, addr)
+            except ConnectionRefusedError:
+                pass  # (connected udpout) an earlier send's ICMP port unreachable, reported on this one
 
     def close(self) -> None:
         self.sock.close()

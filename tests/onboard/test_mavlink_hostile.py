@@ -491,3 +491,41 @@ def test_signed_packets_without_a_key_are_used_and_counted_once(caplog):
         assert f"from {AP_SYSID}/1" in rec.getMessage() and "mavlink.signing_key_file" in rec.getMessage()
     finally:
         r.close()
+
+
+def test_a_udpout_link_takes_datagrams_from_its_router_only():
+    """``udpout`` (the daemon sending to a router that listens, which keeps both ports across a router restart): its
+    socket was bound to every interface on an ephemeral port and read whatever anyone sent there as the autopilot's
+    link.  Now it is bound to the route's address (loopback) and takes datagrams from the fixed address only; a
+    router not (yet) listening costs no exception."""
+    from onboard.io.mavlink_transport import UdpTransport
+
+    router = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    stranger = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    router.bind(("127.0.0.1", 0))
+    t = UdpTransport("udpout", "127.0.0.1", router.getsockname()[1], ())
+    try:
+        t.write(b"hb")
+        data, ours = router.recvfrom(64)
+        assert data == b"hb" and ours[0] == "127.0.0.1" and t.sock.getsockname()[0] == "127.0.0.1"
+        stranger.sendto(b"forged", ours)
+        router.sendto(b"telemetry", ours)
+        got = []
+        deadline = time.monotonic() + WAIT_S
+        while time.monotonic() < deadline and not got:
+            select.select([t.fileno()], [], [], 0.05)
+            item = t.read()
+            if item is not None and item[0]:
+                got.append(item)
+        time.sleep(0.05)  # the stranger's datagram was sent first: it would be read by now
+        item = t.read()
+        rest = [] if item is None else [item]
+        assert [d for d, _ in got + rest] == [b"telemetry"]
+        router.close()  # the router restarting: nobody listens on the port
+        for _ in range(3):
+            t.write(b"hb")  # ICMP port unreachable comes back: not an error of ours
+            time.sleep(0.02)
+    finally:
+        t.close()
+        stranger.close()
+        router.close()
