@@ -497,8 +497,9 @@ class Watchdog:
                 for r in slow
             ],
             "the autopilot caps the stream (its scheduler or the link's bandwidth: ArduPilot ACCEPTS and sends what it "
-            "can) or the link loses messages; poses are interpolated over wider gaps. Check the autopilot's stream "
-            "rate limits and the link (status link.streams)",
+            "can), the link loses messages, or a ground station sharing the link lowered it (its rate is asked again "
+            "every 10 s while slow; MAVProxy: --streamrate=-1); poses are interpolated over wider gaps. Check the "
+            "autopilot's stream rate limits and the link (status link.streams)",
         )
 
     def autopilot_duplicate(self, now_s: float, senders) -> None:

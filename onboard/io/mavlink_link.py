@@ -943,6 +943,9 @@ class MavlinkLink:
         )
 
     def slow_streams(self) -> list[StreamRate]:
-        """The requested streams arriving at under half their confirmed rate for a few seconds (measured now)."""
+        """The requested streams arriving at under half their confirmed rate for a few seconds (measured now); their
+        rates are asked again (:meth:`~onboard.io.mavlink_rates.RateRequests.reask`)."""
         now = self._now()
-        return self.stream_rates.slow(now, self.stream_rates.rates(now))
+        slow = self.stream_rates.slow(now, self.stream_rates.rates(now))
+        self._rates.reask([r.msg_id for r in slow], now)
+        return slow

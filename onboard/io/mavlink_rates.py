@@ -6,6 +6,13 @@ time (an ACK does not say which message it is for), retried every ``command_retr
 is a refusal (counted ``rate_request_refused``, the status's ``rates_refused``).  :class:`RateRequests` is owned
 by :class:`~onboard.io.mavlink_link.MavlinkLink`, which starts the requests on connecting, again after a link loss
 or an autopilot reboot, and sends what they write.
+
+A stream measured slow after its rate was ACCEPTED (:meth:`RateRequests.reask`, from the link's slow streams) is asked
+again, at most every :data:`REASK_S`: on a link the daemon shares with a ground station through a router, the
+station's REQUEST_DATA_STREAM or SET_MESSAGE_INTERVAL sets the same channel's rates (MAVProxy sends
+REQUEST_DATA_STREAM every 15 s by default; ArduPilot lets it override an interval asked before), and nothing else
+would bring the rate back.  An autopilot that caps the stream ACCEPTS again and nothing changes: the
+``stream_rate_low`` warning stays, the re-asks cost one command every :data:`REASK_S`.
 """
 
 from __future__ import annotations
@@ -22,9 +29,12 @@ from onboard.core.stream_rate import StreamRates
 from onboard.io.mavlink_config import MavlinkConfig
 from onboard.io.mavlink_wire import set_message_interval_message
 
-__all__ = ["RateRequests"]
+__all__ = ["REASK_S", "RateRequests"]
 
 log = logging.getLogger(__name__)
+
+#: a slow stream's rate is asked again at most this often (module docstring)
+REASK_S = 10.0
 
 _RESULT_NAMES = {
     v: k[len("MAV_RESULT_") :]
@@ -65,6 +75,7 @@ class RateRequests:
         self._inflight: _Inflight | None = None
         self.rates_confirmed: set[int] = set()
         self.rates_refused: dict[int, int] = {}
+        self._reasked_s: dict[int, float] = {}  # message id -> when its rate was last asked again (reask)
 
     def request(self) -> None:
         """Ask for every rate of the plan again (connected, or the autopilot rebooted): nothing confirmed any more."""
@@ -80,6 +91,25 @@ class RateRequests:
         self._rate_queue.clear()
         self.rates_confirmed.clear()
         self.stream_rates.reset()
+
+    def reask(self, msg_ids, now: float) -> None:
+        """Ask again for the rates of ``msg_ids``, streams measured slow after their rate was ACCEPTED (module
+        docstring), each at most every :data:`REASK_S`; one already asked and not answered is left to its retries."""
+        for mid in msg_ids:
+            if mid not in self.rates_confirmed or mid in self.pending():
+                continue
+            last = self._reasked_s.get(mid)
+            if last is not None and now - last < REASK_S:
+                continue
+            self._reasked_s[mid] = now
+            self._rate_queue.append(mid)
+            log.log(
+                logging.DEBUG if last is not None else logging.INFO,
+                "message %d arrives under half its rate: asked again (a ground station sharing the link may have "
+                "lowered it; asked again while it stays slow, every %g s)",
+                mid,
+                REASK_S,
+            )
 
     def pending(self) -> tuple[int, ...]:
         """The message ids not answered yet: the one in flight first."""
@@ -129,10 +159,14 @@ class RateRequests:
         inf = self._inflight
         result = msg.result
         if result == mavlink2.MAV_RESULT_ACCEPTED:
+            again = inf.msg_id in self.rates_confirmed  # a slow stream asked again: its measure goes on
             self.rates_confirmed.add(inf.msg_id)
-            self.stream_rates.confirmed(inf.msg_id, now)
+            if not again:
+                self.stream_rates.confirmed(inf.msg_id, now)
             self._inflight = None
-            log.info("rate of message %d set to %d us", inf.msg_id, inf.interval_us)
+            log.log(
+                logging.DEBUG if again else logging.INFO, "rate of message %d set to %d us", inf.msg_id, inf.interval_us
+            )
         elif result == mavlink2.MAV_RESULT_IN_PROGRESS:
             inf.sent_s = now
         elif result == mavlink2.MAV_RESULT_TEMPORARILY_REJECTED:

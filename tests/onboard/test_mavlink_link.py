@@ -29,6 +29,7 @@ from onboard.core.frames import (
 )
 from onboard.core.pose import PoseBuffer
 from onboard.io.mavlink_link import LINK_CONNECTED, LINK_LOST, LINK_WAITING, MavlinkConfig, MavlinkLink
+from onboard.io.mavlink_rates import REASK_S
 from onboard.io.mavlink_wire import (
     CameraTrackingGeoStatus,
     CameraTrackingImageStatus,
@@ -900,6 +901,24 @@ def test_a_stream_slower_than_its_accepted_rate_is_measured_and_named():
         assert st["measured_hz"] == pytest.approx(20.0, abs=1.0)
         assert r.link.status().streams["GLOBAL_POSITION_INT"]["measured_hz"] == 0.0
         r.clock.t_s += 1e-4  # the daemon's watchdog asks just after the link's status, on the same thread
+        n_before = len(r.ap.commands)
         assert {s.name for s in r.link.slow_streams()} == {"ATTITUDE_QUATERNION", "GLOBAL_POSITION_INT"}
+        # asked again (a ground station sharing the link may have lowered them), ACCEPTED, the measure going on
+        assert r.drive(lambda: len(r.ap.commands) == n_before + 2 and not r.link.status().rates_pending)
+        assert sorted(mid for mid, _, _ in r.ap.commands[n_before:]) == [31, 33]
+        asked = []  # commands sent by each second, the streams still slow (an autopilot that caps them)
+        for _ in range(int(REASK_S)):
+            for _ in range(20):
+                t_us += 50_000
+                before = r.link.messages_rx
+                r.ap.send(AttitudeQuaternion(t_us, (1.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0)))
+                assert r.drive(lambda before=before: r.link.messages_rx > before)
+            r.clock.t_s += 1.0
+            r.ap.heartbeat()
+            r.link.status()
+            assert len(r.link.slow_streams()) == 2
+            r.drive(lambda: False, timeout_s=0.05)
+            asked.append(len(r.ap.commands) - n_before)
+        assert asked[: int(REASK_S) - 2] == [2] * (int(REASK_S) - 2) and asked[-1] == 4  # again only after REASK_S
     finally:
         r.close()
