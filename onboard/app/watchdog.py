@@ -555,7 +555,8 @@ class Watchdog:
             f"IR frames are stamped {abs(dt_ms):.0f} +- {sigma_ms:.0f} ms {late} against the autopilot's clock "
             f"(> {threshold_ms:g} ms): lines of sight and 3-D positions made with the pose at the stamp are off by "
             f"the camera's rotation over that time; {done}; fix the camera's time stamping (capture time on the "
-            f"autopilot's boot clock, the capture-to-stamp latency)",
+            f"autopilot's boot clock, the capture-to-stamp latency), unless the camera zoomed: a zoom or lens "
+            f"camera.intrinsics are not for reads as a clock offset too (a sender that fills IRF1's zoom field says it)",
         )
 
     def camera_clock(self, now_s: float, apart_s: float | None) -> None:

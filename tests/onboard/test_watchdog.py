@@ -207,6 +207,7 @@ def test_camera_time_offset_warns_when_confidently_above_the_threshold_and_clear
     msgs = _warnings(caplog)
     assert len(msgs) == 1 and msgs[0].startswith("camera_time_offset")
     assert "50 +- 3 ms late" in msgs[0] and "compensates 50 ms" in msgs[0]
+    assert "zoom" in msgs[0]  # a zoom the sender does not state reads as a clock offset (P1 at 2x: 1312 ms)
     assert [w.code for w in wd.active] == ["camera_time_offset"]
     assert "early" in wd.active[0].message and "not compensated" in wd.active[0].message  # the newest estimate's
     wd.camera_time_offset(7.0, _offset(30.0, 10.0, "estimating"), 20.0)
