@@ -22,9 +22,23 @@ class ObjectChain:
     target as a :class:`~onboard.imaging.TrackUpdate` (``track_id`` = its object id, so a change of
     selection is a new track id and the frame pipeline restarts the 3-D estimate and says so), every
     object in :attr:`last_objects`.  ``uses_pose``: the frame pipeline passes each frame's
-    ``R_ned_from_cam`` to :meth:`update` (None when it has no pose yet: the last one is kept, the
+    ``R_ned_from_cam`` to :meth:`update` (None when it has no pose: the last one is kept, the
     camera taken as still since), or a function that returns it once the frame's detection is done
-    (:meth:`ObjectTracker.update`)."""
+    (:meth:`ObjectTracker.update`).
+
+    A gap in the telemetry (a router restarting, a serial link's hiccup: seconds without a pose while the frames
+    go on) is bridged in the tracker's own frame.  Over the gap the tracker took the camera as still, so the
+    lines of sight it holds (its tracks, their histories, the detector's and track-before-detect's registration)
+    are of the rotation it was last given, not of the camera's, which went on turning after its target.  The
+    first rotation after the gap is therefore not handed over as it is, which would read as the camera turning
+    by all of the gap's rotation in one frame period (a few degrees in a second or two: every prediction tens of
+    pixels or more off its object, and the primary coasted out and was chosen again under a new id, on which the
+    frame pipeline restarts the 3-D estimate):
+    the tracker's frame is turned instead, ``R_ned_from_tracker`` such that the camera's rotation in it
+    continues the one it was last given, and every rotation after is handed over in that frame.  Only what the
+    tracker held is taken to be of the gap's last frame (off by one frame period's turn); the rotations between
+    frames after the gap are the telemetry's, as before it.  The objects' lines of sight leave in local NED
+    (:attr:`last_objects`): turned back by ``R_ned_from_tracker``."""
 
     uses_pose = True
 
@@ -43,7 +57,11 @@ class ObjectChain:
         self.mode = mode
         self.last_objects: ObjectsUpdate | None = None
         self.rejected_frames = 0
-        self._R: np.ndarray | None = None
+        self._R: np.ndarray | None = None  # the rotation last handed to the tracker, in its frame
+        # the tracker's frame in local NED: None while it is local NED (no frame has gone without a rotation since
+        # the first rotation came), else turned at the end of each gap in the rotations (class docstring)
+        self._R_ned_from_tracker: np.ndarray | None = None
+        self._held = False  # the last frame went to the tracker without a rotation of its own
         self._last_primary: int | None = None
         # (frame, its update) a selection measured: a second request decided on the same frame (a double click within
         # a frame period, a click then a box) selects on it, and the frame's update after selections that selected
@@ -67,16 +85,40 @@ class ObjectChain:
             self.rejected_frames += 1
             raise
 
-        def kept(R):  # a rotation replaces the last one; None keeps it
-            if R is not None:
-                self._R = np.asarray(R, dtype=np.float64)
-            return self._R
-
         given = R_ned_from_cam
-        rotation = (lambda: kept(given())) if callable(given) else kept(given)
+        rotation = (lambda: self._in_tracker_frame(given())) if callable(given) else self._in_tracker_frame(given)
         out = self.objects.update(image, rotation, time_boot_us)
-        self.last_objects = out
+        self.last_objects = self._in_ned(out)
         return self._track_update(out)
+
+    def _in_tracker_frame(self, R_ned_from_cam) -> np.ndarray | None:
+        """The rotation to hand the tracker for a frame: ``R_ned_from_cam`` in the tracker's frame; without one,
+        the last handed over (None before any: the tracker takes the identity).  The first rotation after frames
+        without one turns the tracker's frame so that it continues the rotation those frames were given (class
+        docstring)."""
+        if R_ned_from_cam is None:
+            self._held = True
+            return self._R
+        R = np.asarray(R_ned_from_cam, dtype=np.float64)
+        if R.shape != (3, 3) or not np.all(np.isfinite(R)):
+            return R  # the tracker refuses it, naming it (ObjectTracker._rotation)
+        if self._held:
+            held = np.eye(3) if self._R is None else self._R  # the tracker's identity for None
+            self._R_ned_from_tracker = R @ held.T
+            self._held = False
+        turn = self._R_ned_from_tracker
+        self._R = R if turn is None else turn.T @ R
+        return self._R
+
+    def _in_ned(self, out: ObjectsUpdate) -> ObjectsUpdate:
+        """``out`` with its objects' lines of sight in local NED (made in the tracker's frame)."""
+        turn = self._R_ned_from_tracker
+        if turn is None:
+            return out
+        objects = tuple(
+            o if o.los_ned is None else dataclasses.replace(o, los_ned=_turned(turn, o.los_ned)) for o in out.objects
+        )
+        return dataclasses.replace(out, objects=objects)
 
     def _track_update(self, out: ObjectsUpdate):
         from onboard.imaging.tracker import TrackState, TrackUpdate
@@ -156,3 +198,8 @@ class ObjectChain:
     def reset(self) -> None:
         """Forget every track (ids continue)."""
         self.objects.clear_tracks()
+
+
+def _turned(R: np.ndarray, v) -> tuple[float, float, float]:
+    n, e, d = (float(c) for c in R @ np.asarray(v, dtype=np.float64))
+    return n, e, d

@@ -377,6 +377,50 @@ def test_object_chain_selections_on_one_frame_measure_it_once_and_a_stop_in_auto
     assert not ObjectChain(K, mode="operator").holding  # operator mode waits by design: no hold to report
 
 
+PAN_RAD_PER_FRAME = 0.002  # a gimbal following its target at 3.4 deg/s (30 frames/s)
+GAP_FRAMES = 63  # a router restart: 2.1 s without telemetry, the frames going on
+LOS_TOL_RAD = 2e-3  # the gap's last frame taken at the first rotation after it: one frame's pan, plus a centroid
+
+
+def _panned(k: int) -> np.ndarray:
+    """R_ned_from_cam of a camera looking north, level, panned right by ``PAN_RAD_PER_FRAME`` a frame."""
+    c, s = math.cos(PAN_RAD_PER_FRAME * k), math.sin(PAN_RAD_PER_FRAME * k)
+    yaw = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return yaw @ np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])  # columns: camera x, y, z in NED
+
+
+def test_a_gap_in_the_rotations_keeps_the_primary_and_its_lines_of_sight():
+    """Frames without a rotation (the telemetry stopped for 2.1 s) while the gimbal goes on following its target:
+    the chain takes the camera as still over them, so its tracks hold lines of sight of the last rotation.  The
+    first rotation after the gap was handed over as it was, a turn of 7 deg in one frame period: the primary's
+    prediction fell 25 px off its object, it coasted out and the object was chosen again under a new id (the
+    pipeline restarts the 3-D estimate on it).  Kept now, measured on the first frame after the gap, and its
+    line of sight there is the camera's, in local NED."""
+    from onboard.imaging import TrackState
+    from onboard.imaging.objects_chain import ObjectChain
+
+    rng = np.random.default_rng(11)
+    chain = ObjectChain(K)
+
+    def target(k: int) -> tuple[float, float]:  # near the centre, drifting as a gimbal's pointing error does
+        return W_PX / 2 + 3 + 0.05 * k, H_PX / 2 - 2
+
+    ids, states = [], []
+    for k in range(60 + GAP_FRAMES + 60):  # a track coasts 45 frames (coast_frames)
+        R = None if 60 <= k < 60 + GAP_FRAMES else _panned(k)
+        upd = chain.update(_frame(rng, [target(k)]), R)
+        ids.append(upd.track_id)
+        states.append(upd.state)
+        if k >= 60 + GAP_FRAMES and upd.measurement_valid:
+            (prim,) = [o for o in chain.last_objects.objects if o.object_id == upd.track_id]
+            truth = _panned(k) @ K.bearing_cam_from_pixel(target(k))
+            angle = math.acos(min(float(np.dot(prim.los_ned, truth / np.linalg.norm(truth))), 1.0))
+            assert angle < LOS_TOL_RAD, (k, angle)
+    assert states[59] is TrackState.TRACKING
+    assert set(ids[59:]) == {ids[59]}  # one object, one id: through the gap and after it
+    assert all(s is TrackState.TRACKING for s in states[60 + GAP_FRAMES :])
+
+
 def test_a_click_selects_a_coasting_object_where_it_is_shown_not_where_it_was_last_measured():
     """A coasting object is published (and drawn by the ground station) at its prediction; the click was matched
     against its last measured pixel, 30 px behind it here: a click on the drawn object was refused, and one on
