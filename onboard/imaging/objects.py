@@ -333,7 +333,13 @@ class ObjectTracker:
         # a track measured on the frame before is searched at 4 sigmas within 1.5 px of its prediction: C2 seed 3's
         # target, at one grey level of point contrast over its roofs, stood at 4-5 sigmas of the difference there
         # on most of its single missed frames
-        return self.detector.difference_candidate(puv, gate, R, held=t.confirmed and t.misses == 0)
+        c = self.detector.difference_candidate(puv, gate, R, held=t.confirmed and t.misses == 0)
+        # its square is taken with the frame's edge pixels repeated beyond it, so a prediction at the edge can peak
+        # off the frame: no measurement (the frame pipeline refuses a measured centre off the frame, and with it
+        # the frame's track: tracker_output_invalid)
+        if c is not None and not (0.0 <= c.u_px <= self.K.width_px and 0.0 <= c.v_px <= self.K.height_px):
+            return None
+        return c
 
     # ------------------------------------------------------------------ step
 

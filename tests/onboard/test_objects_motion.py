@@ -3,7 +3,9 @@ scrolling terrain with known answers."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
+import types
 
 import cv2
 import numpy as np
@@ -363,3 +365,20 @@ def test_a_coasting_track_is_judged_on_its_last_measured_positions(monkeypatch):
     t.history = hist[-3:]  # fewer than confirm_hits measured positions: no verdict
     monkeypatch.setattr(tr.detector, "background_over_window", lambda: (0.0, 0.0))
     assert not tr._moves_unlike_background(t, R)
+
+
+@pytest.mark.parametrize("uv", [(K.width_px + 2.0, 100.0), (-0.5, 100.0), (100.0, K.height_px + 0.1)])
+def test_a_background_difference_that_peaks_off_the_frame_measures_nothing(uv, monkeypatch):
+    """Its square repeats the frame's edge pixels beyond the edge, so about a prediction at the edge it can peak off
+    the frame (a lockstep P1 run after a telemetry gap: u = 642.0 on a 640 px frame, taken as the primary's
+    measurement, and the frame pipeline refused the frame's track as tracker_output_invalid)."""
+    from onboard.imaging.clutter import PointCandidate
+
+    tr = ObjectTracker(K)
+    off = PointCandidate(uv[0], uv[1], (int(uv[0]) - 1, int(uv[1]) - 1, 2, 2), 4, 9.0, 2.0)
+    monkeypatch.setattr(tr.detector, "difference_candidate", lambda *a, **k: off)
+    inside = dataclasses.replace(off, u_px=K.width_px - 0.5, v_px=K.height_px - 0.5)
+    track = types.SimpleNamespace(confirmed=True, misses=0)  # the one track there is
+    assert tr._difference_candidate(track, uv, 4.0, np.eye(3)) is None
+    monkeypatch.setattr(tr.detector, "difference_candidate", lambda *a, **k: inside)
+    assert tr._difference_candidate(track, uv, 4.0, np.eye(3)) is inside
