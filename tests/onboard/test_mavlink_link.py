@@ -886,16 +886,22 @@ def test_a_stream_slower_than_its_accepted_rate_is_measured_and_named():
     try:
         r.connect()
         assert r.link.slow_streams() == []
-        t_us = 1_000_000
-        for _ in range(int(SLOW_PERSIST_S) + 3):  # seconds on the link's clock, 20 attitudes in each
+        t_us = [1_000_000]
+
+        def a_second_at_20_hz() -> None:
+            """20 attitudes, then a second on the link's clock, a heartbeat and a status (the looks the rate is
+            measured over)."""
             for _ in range(20):
-                t_us += 50_000
+                t_us[0] += 50_000
                 before = r.link.messages_rx
-                r.ap.send(AttitudeQuaternion(t_us, (1.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0)))
+                r.ap.send(AttitudeQuaternion(t_us[0], (1.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0)))
                 assert r.drive(lambda before=before: r.link.messages_rx > before)
             r.clock.t_s += 1.0
             r.ap.heartbeat()
-            r.link.status()  # a status a second: the looks the rate is measured over
+            r.link.status()
+
+        for _ in range(int(SLOW_PERSIST_S) + 3):
+            a_second_at_20_hz()
         st = r.link.status().streams["ATTITUDE_QUATERNION"]
         assert st["msg_id"] == 31 and st["requested_hz"] == 100.0
         assert st["measured_hz"] == pytest.approx(20.0, abs=1.0)
@@ -908,14 +914,7 @@ def test_a_stream_slower_than_its_accepted_rate_is_measured_and_named():
         assert sorted(mid for mid, _, _ in r.ap.commands[n_before:]) == [31, 33]
         asked = []  # commands sent by each second, the streams still slow (an autopilot that caps them)
         for _ in range(int(REASK_S)):
-            for _ in range(20):
-                t_us += 50_000
-                before = r.link.messages_rx
-                r.ap.send(AttitudeQuaternion(t_us, (1.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0)))
-                assert r.drive(lambda before=before: r.link.messages_rx > before)
-            r.clock.t_s += 1.0
-            r.ap.heartbeat()
-            r.link.status()
+            a_second_at_20_hz()
             assert len(r.link.slow_streams()) == 2
             r.drive(lambda: False, timeout_s=0.05)
             asked.append(len(r.ap.commands) - n_before)
