@@ -71,7 +71,7 @@ Noise: ``--attitude-bias-deg`` / ``--camera-white-m`` (> 0) / ``--camera-offset-
 ``--vehicle-noise`` for one vehicle's keys where they differ (e.g. ``uav2:attitude_bias_deg=0.5``).  A vehicle's
 attitude-bias prior (the share of each ray's published sigma the solve takes as a constant common to its rays, not
 white noise) is, from its newest ray on: ``--vehicle-noise NAME:attitude_bias_deg=..`` where that names it (the
-operator's word wins; a track stating a value more than :data:`BIAS_APART_FACTOR` (1.5) from it is warned of once,
+operator's word wins; a track stating a value more than :data:`~onboard.app.fuse_bias.BIAS_APART_FACTOR` (1.5) from it is warned of once,
 naming both), else what its tracks state (``los_sigma_bias_deg``: its daemon's
 ``estimator.attitude_bias_sigma_deg``), else ``--attitude-bias-deg`` (a daemon before the key).  Said at INFO once per
 vehicle and again if it changes; the status gives each vehicle's under ``attitude_bias_prior``: ``{deg, source,
@@ -98,11 +98,21 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Collection, Mapping, Sequence
+from collections.abc import Collection, Sequence
 
 import numpy as np
 
 from onboard.app.cli_args import OneLineParser, add_zenoh_options, nonnegative_float, number_in
+from onboard.app.fuse_noise import (
+    BiasPriors,
+    attitude_bias_deg_arg,
+    bias_named,
+    camera_offset_m_arg,
+    camera_white_m_arg,
+    noise_models,
+    vehicle_arg,
+    vehicle_noise_arg,
+)
 from onboard.app.logs import setup_logging
 from onboard.app.watch import ZENOH_CONNECT_HELP, zenoh_config
 from onboard.core.counters import RejectCounter
@@ -115,7 +125,6 @@ from onboard.estimation.fleet import (
     Ray,
     VehicleNoise,
     fleet_verdict,
-    noise_for,
     triangulate,
 )
 from onboard.estimation.fleet_tracker import FleetTracker
@@ -138,7 +147,7 @@ from onboard.io.fleet_wire import (
 )
 from onboard.io.zenoh_session import ZenohConfig, check_vehicle_name, open_session
 
-__all__ = ["FLEET_STATUS_SCHEMA", "EVENTS", "BiasPrior", "Fusion", "build_parser", "zenoh_settings", "main", "warm_up"]
+__all__ = ["FLEET_STATUS_SCHEMA", "EVENTS", "Fusion", "build_parser", "zenoh_settings", "main", "warm_up"]
 
 log = logging.getLogger(__name__)
 
@@ -165,27 +174,6 @@ REANCHOR_AFTER_S = 3.0
 #: ... at most once in this long (and never back to a vehicle whose frame was given up): two vehicles that far apart
 #: cannot be fused, and the frame must not flicker
 REANCHOR_HOLD_S = 30.0
-#: a vehicle's tracks stating an attitude bias more than this factor from its --vehicle-noise attitude_bias_deg are
-#: warned of (once): one of the two is not its attitude (the scatter test's factor, BIAS_ABOVE_PRIOR_FACTOR)
-BIAS_APART_FACTOR = 1.5
-
-
-@dataclasses.dataclass(frozen=True)
-class BiasPrior:
-    """A vehicle's attitude-bias prior in use: ``deg`` (1 sigma per axis), ``source`` (``vehicle_noise``: the
-    operator's --vehicle-noise; ``track``: its tracks' ``los_sigma_bias_deg``; ``attitude_bias_deg``: the global
-    option, its tracks stating none) and ``stated_deg``, what its newest track stated (None: nothing)."""
-
-    deg: float
-    source: str
-    stated_deg: float | None
-
-
-_BIAS_SOURCE_TEXT = {
-    "vehicle_noise": "from --vehicle-noise",
-    "track": "stated by its tracks (los_sigma_bias_deg)",
-    "attitude_bias_deg": "from --attitude-bias-deg (its tracks state none: a daemon before los_sigma_bias_deg)",
-}
 
 
 class Inbox:
@@ -318,11 +306,8 @@ class Fusion:
         #: vehicles forgotten since the owner last looked (it drops what it keeps for them: their publishers)
         self.forgotten: list[str] = []
         self._reanchored_at = -math.inf
-        #: the vehicles whose attitude-bias prior the operator gave (--vehicle-noise NAME:attitude_bias_deg=..): their
-        #: tracks' own (los_sigma_bias_deg) does not replace it
-        self.bias_named = frozenset(bias_named)
-        self._bias_priors: dict[str, BiasPrior] = {}
-        self._bias_apart_warned: set[str] = set()
+        #: each vehicle's attitude-bias prior (the operator's, its tracks', or the global option's)
+        self.bias_priors = BiasPriors(tracker, bias_named)
 
     def _check_clashes(self, now_unix_s: float) -> list[str]:
         clashing = self.stream_check.clashing(now_unix_s)
@@ -534,7 +519,7 @@ class Fusion:
         self._time_sources[vehicle] = source
         self._origins[vehicle] = track.origin
         self._cameras[vehicle] = np.asarray(los.p_cam_ned_m)
-        self._take_bias_prior(vehicle, los.sigma_bias_deg)
+        self.bias_priors.take(vehicle, los.sigma_bias_deg)
         self.rays += 1
         tid = self.tracker.add(ray)
         if tid is not None:
@@ -556,45 +541,6 @@ class Fusion:
             self._silent.discard(vehicle)
             self.counter.count("vehicle_back", f"{vehicle}: tracks again", level=logging.INFO, subject=vehicle)
         return True
-
-    def _take_bias_prior(self, vehicle: str, stated_deg: float | None) -> None:
-        """Set ``vehicle``'s attitude-bias prior from its newest ray's track (module docstring, "Noise"): the
-        operator's ``--vehicle-noise NAME:attitude_bias_deg=..`` where given (WARNING once when the track states one
-        more than :data:`BIAS_APART_FACTOR` apart), else what the track states, else ``--attitude-bias-deg``.  Said at
-        INFO for each vehicle when first set and whenever it changes (a daemon restarted with another setting)."""
-        configured = noise_for(self.tracker.configured_noise, vehicle)
-        option_deg = math.degrees(configured.attitude_bias_sigma_rad)
-        if vehicle in self.bias_named:
-            prior = BiasPrior(option_deg, "vehicle_noise", stated_deg)
-            if stated_deg is not None and vehicle not in self._bias_apart_warned:
-                low, high = sorted((stated_deg, option_deg))
-                if high > BIAS_APART_FACTOR * low:
-                    self._bias_apart_warned.add(vehicle)
-                    log.warning(
-                        "%s: its tracks state an attitude-bias sigma of %.3g deg (its daemon's "
-                        "estimator.attitude_bias_sigma_deg), --vehicle-noise %s:attitude_bias_deg=%g says %g deg: the "
-                        "option's is used; one of them is not this vehicle's attitude (correct the daemon's setting, "
-                        "or drop the option to take the track's)",
-                        vehicle,
-                        stated_deg,
-                        vehicle,
-                        option_deg,
-                        option_deg,
-                    )
-        elif stated_deg is not None:
-            prior = BiasPrior(stated_deg, "track", stated_deg)
-        else:
-            prior = BiasPrior(option_deg, "attitude_bias_deg", None)
-        last = self._bias_priors.get(vehicle)
-        self._bias_priors[vehicle] = prior
-        if last is not None and (last.deg, last.source) == (prior.deg, prior.source):
-            return
-        if prior.source == "track":
-            own = dataclasses.replace(configured, attitude_bias_sigma_rad=math.radians(prior.deg))
-            self.tracker.set_vehicle_noise(vehicle, own)
-        else:
-            self.tracker.set_vehicle_noise(vehicle, None)
-        log.info("%s: attitude-bias prior %.3g deg, %s", vehicle, prior.deg, _BIAS_SOURCE_TEXT[prior.source])
 
     def _reanchor_if_alone(self, vehicle: str, origin: GeodeticOrigin, now_unix_s: float) -> None:
         """Give up a fleet frame that only the vehicle which set it has been accepted in, once ``vehicle``'s cameras
@@ -647,10 +593,9 @@ class Fusion:
             self._off_window,
         ):
             kept.pop(v, None)
-        for named in (self._silent, self._clock_refused, self._clock_flagged, self._bias_apart_warned):
+        for named in (self._silent, self._clock_refused, self._clock_flagged):
             named.discard(v)
-        self._bias_priors.pop(v, None)
-        self.tracker.set_vehicle_noise(v, None)
+        self.bias_priors.forget(v)
         self.tracker.withdraw(v, "forgotten")
         self.stream_check.forget(v)
         self.clock_check.forget(v)
@@ -751,10 +696,7 @@ class Fusion:
             "attitude_bias_deg": {
                 v: round(math.degrees(b), 3) for v, b in sorted(self.tracker.biases_above_prior_rad.items())
             },
-            "attitude_bias_prior": {
-                v: {"deg": round(p.deg, 4), "source": p.source, "stated_deg": p.stated_deg}
-                for v, p in sorted(self._bias_priors.items())
-            },
+            "attitude_bias_prior": self.bias_priors.status(),
             "rejected": {k: n for k, n in counts.items() if k not in EVENTS},
             "events": {k: n for k, n in counts.items() if k in EVENTS},
         }
@@ -762,63 +704,9 @@ class Fusion:
 
 _positive = nonnegative_float("expected a number", "expected a number >= 0")
 
+
 # the noise a vehicle can have (degrees, metres): zero allowed for the nuisances a zero switches off, not for the
 # white noise; beyond the upper bounds no camera is placed at all, and the solve would overflow
-_attitude_bias_deg = number_in(0.0, 90.0)
-_camera_white_m = number_in(0.0, 1000.0, lo_open=True)
-_camera_offset_m = number_in(0.0, 1000.0)
-
-#: --vehicle-noise's keys (the global options' names and units) and the parser each value takes
-_NOISE_KEYS = {
-    "attitude_bias_deg": _attitude_bias_deg,
-    "camera_white_m": _camera_white_m,
-    "camera_offset_m": _camera_offset_m,
-}
-
-
-def _vehicle_noise(text: str) -> tuple[str, dict[str, float]]:
-    """``NAME:key=value,...`` with keys of ``_NOISE_KEYS`` (degrees, metres: the global options' units)."""
-    name, sep, rest = text.partition(":")
-    usage = f"expected NAME:KEY=VALUE[,KEY=VALUE...] with KEY one of {', '.join(_NOISE_KEYS)}, got {text!r}"
-    try:
-        name = _vehicle(name)
-    except argparse.ArgumentTypeError:
-        raise argparse.ArgumentTypeError(usage) from None
-    values: dict[str, float] = {}
-    for item in rest.split(",") if sep else []:
-        k, eq, v = item.strip().partition("=")
-        if k not in _NOISE_KEYS or not eq or k in values:
-            raise argparse.ArgumentTypeError(usage)
-        try:
-            values[k] = _NOISE_KEYS[k](v)
-        except argparse.ArgumentTypeError as exc:
-            raise argparse.ArgumentTypeError(f"{name}: {k}: {exc}") from None
-    if not values:
-        raise argparse.ArgumentTypeError(usage)
-    return name, values
-
-
-def noise_models(args: argparse.Namespace) -> VehicleNoise:
-    """The global noise model with each ``--vehicle-noise`` vehicle's own (unnamed keys: the global values)."""
-    default = {
-        "attitude_bias_deg": args.attitude_bias_deg,
-        "camera_white_m": args.camera_white_m,
-        "camera_offset_m": args.camera_offset_m,
-    }
-
-    def model(v: Mapping[str, float]) -> NoiseModel:
-        return NoiseModel(
-            attitude_bias_sigma_rad=math.radians(v["attitude_bias_deg"]),
-            camera_position_white_sigma_m=v["camera_white_m"],
-            camera_position_offset_sigma_m=v["camera_offset_m"],
-        )
-
-    per: dict[str, dict[str, float]] = {}
-    for name, values in args.vehicle_noise:
-        per.setdefault(name, dict(default)).update(values)
-    return VehicleNoise(model(default), {name: model(v) for name, v in per.items()})
-
-
 def warm_up(config: FleetConfig) -> None:
     """One solve and verdict of a synthetic pair before the first real one: the first call of each linear
     algebra and special function pays its dispatch set-up, which would land on the first fleet track's latency."""
@@ -848,7 +736,7 @@ def _origin(text: str) -> GeodeticOrigin:
 def _offset(text: str) -> tuple[str, float]:
     name, sep, value = text.partition("=")
     try:
-        _vehicle(name)
+        vehicle_arg(name)
         v = float(value)
         if not sep or not math.isfinite(v):
             raise ValueError
@@ -876,23 +764,13 @@ def check_names(parser: argparse.ArgumentParser, args: argparse.Namespace) -> No
                 parser.error(f"{option}: {', '.join(outside)} not one of --vehicles {' '.join(args.vehicles)}")
 
 
-def _vehicle(text: str) -> str:
-    try:
-        name = check_vehicle_name(text)
-    except IrtrackError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from None
-    if name == FLEET_NAME:
-        raise argparse.ArgumentTypeError(f"{FLEET_NAME!r} is the fusion's own key, not a vehicle")
-    return name
-
-
 def build_parser() -> argparse.ArgumentParser:
     p = OneLineParser(
         prog="python -m onboard.fuse",
         description="Fuse the vehicles' lines of sight (zenoh irtrack/*/track) into fleet tracks "
         "(irtrack/fleet/track, irtrack/<vehicle>/fleet/track).",
     )
-    p.add_argument("--vehicles", nargs="+", type=_vehicle, metavar="NAME", help="only these (default: all)")
+    p.add_argument("--vehicles", nargs="+", type=vehicle_arg, metavar="NAME", help="only these (default: all)")
     p.add_argument("--origin", type=_origin, help="fleet NED origin LAT,LON,ALT (default: the first vehicle's)")
     p.add_argument(
         "--clock-offset",
@@ -932,15 +810,15 @@ def build_parser() -> argparse.ArgumentParser:
         help="log each reason at most this often; a vehicle's own events (silent, back, clock, name clash) per vehicle (10)",
     )
     p.add_argument(
-        "--attitude-bias-deg", type=_attitude_bias_deg, default=0.1, help="attitude bias prior, 1 sigma (0.1)"
+        "--attitude-bias-deg", type=attitude_bias_deg_arg, default=0.1, help="attitude bias prior, 1 sigma (0.1)"
     )
-    p.add_argument("--camera-white-m", type=_camera_white_m, default=0.02, help="white camera-position noise (0.02)")
+    p.add_argument("--camera-white-m", type=camera_white_m_arg, default=0.02, help="white camera-position noise (0.02)")
     p.add_argument(
-        "--camera-offset-m", type=_camera_offset_m, default=0.0, help="camera-position offset prior (0: none)"
+        "--camera-offset-m", type=camera_offset_m_arg, default=0.0, help="camera-position offset prior (0: none)"
     )
     p.add_argument(
         "--vehicle-noise",
-        type=_vehicle_noise,
+        type=vehicle_noise_arg,
         action="append",
         default=[],
         metavar="NAME:KEY=VALUE,...",
@@ -1006,7 +884,7 @@ def _main(argv: Sequence[str] | None) -> int:
         clock_check=ClockConsistency(tolerance_s=args.clock_tolerance_ms / 1e3),
         silent_after_s=args.silent_after_s,
         max_time_sigma_s=args.max_time_sigma_ms / 1e3,
-        bias_named=[name for name, values in args.vehicle_noise if "attitude_bias_deg" in values],
+        bias_named=bias_named(args.vehicle_noise),
     )
     stop = threading.Event()
     session = None

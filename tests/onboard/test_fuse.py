@@ -16,7 +16,8 @@ import numpy as np
 import pytest
 
 from groundsim.evaluation.fleet_synth import SynthTarget, SynthVehicle, measure, track_payload
-from onboard.app.fuse import EVENTS, Fusion, Inbox, build_parser, drain, noise_models
+from onboard.app.fuse import EVENTS, Fusion, Inbox, build_parser, drain
+from onboard.app.fuse_noise import noise_models
 from onboard.core.counters import RejectCounter
 from onboard.core.frames import GeodeticOrigin, ned_from_geodetic
 from onboard.estimation.fleet import FleetConfig

@@ -14,7 +14,8 @@ import pytest
 from scipy.stats import chi2
 
 from groundsim.evaluation.fleet_synth import SynthTarget, SynthVehicle, measure, track_payload
-from onboard.app.fuse import Fusion, build_parser, noise_models
+from onboard.app.fuse import Fusion, build_parser
+from onboard.app.fuse_noise import bias_named, noise_models
 from onboard.core.counters import RejectCounter
 from onboard.core.frames import GeodeticOrigin
 from onboard.estimation.fleet import FleetConfig
@@ -36,7 +37,7 @@ def fusion_of(argv: list[str]) -> Fusion:
         FleetTracker(FleetConfig(), noise_models(args), counter),
         CommonClock(),
         counter=counter,
-        bias_named=[name for name, values in args.vehicle_noise if "attitude_bias_deg" in values],
+        bias_named=bias_named(args.vehicle_noise),
     )
 
 

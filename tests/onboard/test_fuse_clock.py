@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 from groundsim.evaluation.fleet_synth import SynthTarget, SynthVehicle, measure, track_payload
-from onboard.app.fuse import Fusion, build_parser, noise_models
+from onboard.app.fuse import Fusion, build_parser
+from onboard.app.fuse_noise import noise_models
 from onboard.core.counters import RejectCounter
 from onboard.core.frames import GeodeticOrigin
 from onboard.estimation.fleet import FleetConfig, Ray
