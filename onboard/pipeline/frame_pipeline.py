@@ -106,7 +106,6 @@ from onboard.core.irframe import (
     IrFrame,
     IrFrameError,
     decode_irframe,
-    zoom_off_calibration,
 )
 from onboard.core.pose_types import PoseAt
 from onboard.core.status import RollingStats
@@ -117,6 +116,7 @@ from onboard.pipeline.admission import FrameAdmission
 from onboard.pipeline.answer_checks import estimate_problem, frame_shape_hw, tracker_problem
 from onboard.pipeline.coast import coast_estimate
 from onboard.pipeline.restamp import StampPoseHistory
+from onboard.pipeline.withholding import ZOOM_MISMATCH, Withholding
 
 __all__ = [
     "FrameRejected",
@@ -153,8 +153,6 @@ TRACKER_REFUSALS = ("tracker_output_invalid", "tracker_error")
 ACCEPTED_FRAME_EVENTS = frozenset(
     {"frame_time_reset", "frame_sequence_reset", "frame_stream_restart", "frame_encoding_changed", "frame_zoom_invalid"}
 )
-#: the warning code a frame's own zoom withholds its geometry under (module docstring, step 1)
-ZOOM_MISMATCH = "zoom_mismatch"
 
 
 class FrameRejected(InputError):
@@ -292,16 +290,7 @@ class FramePipeline:
         self.clock_apart_s: float | None = None
         self._encoding: int | None = None  # the last accepted frame's (an IrFrame encoding code)
         self._last_taken: IrFrame | None = None  # the last accepted frame: a resend of it is compared pixel by pixel
-        # the warnings the daemon withholds the geometry for (withheld_because's setter); another thread sets them
-        self._withheld_by_daemon: tuple[str, ...] = ()
-        self._withheld: tuple[str, ...] = ()  # what withheld the last frame's geometry (_follow_withheld)
-        # the sets of codes whose withholding has begun and ended once, logged then: again, at DEBUG (_follow_withheld)
-        self._withheld_told: set[tuple[str, ...]] = set()
-        #: the zoom the last frame taken stated (IRF1's field, relative to the calibrated one); None: not stated
-        self.last_zoom: float | None = None
-        self._zoom_off = False  # the last frame taken stated a zoom camera.intrinsics are not for
-        #: frames whose line of sight and 3-D position were withheld for their stated zoom
-        self.frames_withheld_zoom = 0
+        self._withholding = Withholding()  # what withholds the geometry: the daemon's codes, the frame's zoom
         self._last_p_cam_ned_m: np.ndarray | None = None  # the newest frame's camera, for a frame without a pose
         ec = config.estimator
         # a pose whose position is dead-reckoned beyond the camera-position noise the window assumes coasts
@@ -338,14 +327,23 @@ class FramePipeline:
         """The warnings that withhold the line of sight and the 3-D position now (the image fields still go out):
         those the daemon sets from its watchdog (``gimbal_mismatch``, ``camera_mismatch``), then
         :data:`ZOOM_MISMATCH` while the last frame taken states a zoom the intrinsics are not for (decided here,
-        frame by frame).  Read once per frame: another thread sets it."""
-        daemon = self._withheld_by_daemon
-        return (*daemon, ZOOM_MISMATCH) if self._zoom_off else daemon
+        frame by frame: :class:`~onboard.pipeline.withholding.Withholding`).  Read once per frame: another thread
+        sets it."""
+        return self._withholding.codes
 
     @withheld_because.setter
     def withheld_because(self, codes: tuple[str, ...]) -> None:
-        # the zoom is the frames' to say: a caller handing back what it read must not pin it past them
-        self._withheld_by_daemon = tuple(c for c in codes if c != ZOOM_MISMATCH)
+        self._withholding.set_by_daemon(codes)
+
+    @property
+    def last_zoom(self) -> float | None:
+        """The zoom the last frame taken stated (IRF1's field, relative to the calibrated one); None: not stated."""
+        return self._withholding.last_zoom
+
+    @property
+    def frames_withheld_zoom(self) -> int:
+        """Frames whose line of sight and 3-D position were withheld for their stated zoom."""
+        return self._withholding.frames_withheld_zoom
 
     def reset(self) -> None:
         """Forget the stream (sequence/time), the track and the estimate; counters continue."""
@@ -473,7 +471,7 @@ class FramePipeline:
                 f"{K.width_px} x {K.height_px} (camera.intrinsics)",
             )
         self._admit(frame)
-        self._follow_zoom(frame)
+        self._withholding.follow_zoom(frame, self.counter)
         # while the stream's clock stands apart from the telemetry's, no pose: none is waited for or looked up
         apart_us = self._admission.apart_us
         self.clock_apart_s = None if apart_us is None else apart_us / US_PER_S
@@ -551,10 +549,12 @@ class FramePipeline:
 
         self.last_position_age_s = self._position_age_s(pose)
         self._follow_compensation()
-        withheld = self._follow_withheld()
+        withheld, cleared, level = self._withholding.follow()
+        if cleared:  # the window holds rows made with the wrong camera, or is as old as the frames withheld
+            self._reset_estimator(f"{', '.join(cleared)} cleared", level)
         e0 = self._clock_ns()
         est = None
-        if not self._zoom_off:
+        if not self._withholding.zoom_off:
             # a zoomed frame's bearing, made with the calibrated focal length, is off by the zoom's ratio: unlike a
             # camera_mismatch (whose residuals are what clears it) nothing needs it, and it would bend both estimates
             est = self._estimate(upd, pose, t_us)
@@ -630,20 +630,6 @@ class FramePipeline:
             self._reset_estimator(verdict.reason.replace("_", " "))
             if self.time_offset is not None:  # a clock step or a restarted camera: its offset may have changed
                 self.time_offset.reset()
-
-    def _follow_zoom(self, frame: IrFrame) -> None:
-        """Take the zoom a frame states (module docstring, step 1): withhold its geometry when the intrinsics are
-        not for it; a zoom field no zoom can hold is counted and read as not stated."""
-        if frame.zoom_invalid:
-            self.counter.count(
-                "frame_zoom_invalid",
-                f"frame seq {frame.seq} states a zoom of {frame.zoom!r}, which no zoom can be: taken as not stated "
-                "(the frame is tracked as before the field); check the sender's IRF1 header, offset 28 (float32)",
-            )
-        self.last_zoom = frame.stated_zoom
-        self._zoom_off = zoom_off_calibration(self.last_zoom, was_off=self._zoom_off)
-        if self._zoom_off:
-            self.frames_withheld_zoom += 1
 
     # ------------------------------------------------------------------ estimation
 
@@ -933,28 +919,6 @@ class FramePipeline:
         los = p_ned_m - np.asarray(cam, dtype=float)
         rng = float(np.linalg.norm(los))
         return across_range_widened(cov_p_ned_m2, los / rng, rng) if rng > 0 else np.asarray(cov_p_ned_m2, dtype=float)
-
-    def _follow_withheld(self) -> tuple[str, ...]:
-        """What withholds this frame's line of sight and 3-D position (:attr:`withheld_because`, read once), logged
-        as it starts and ends.  At its end the estimator starts again, before this frame's row, which is the new
-        window's first: the window holds rows made with the wrong camera (a ``camera_mismatch``'s), or its newest
-        estimate is as old as the frames withheld (a zoom's rows never reach it), so that an estimate carried from it
-        would be withheld as stale (counted ``estimate_after_gap``, as if the frames had stopped coming).
-
-        Logged at WARNING and INFO the first time for each set of codes, at DEBUG after: a zoom decides it frame by
-        frame, and one that flips every frame (two senders on the key, a lens at the tolerance's edge) would log a
-        WARNING every other frame; the watchdog's warning and the status's ``geometry`` say it goes on."""
-        codes = self.withheld_because
-        before, self._withheld = self._withheld, codes
-        if codes and not before:
-            level = logging.DEBUG if codes in self._withheld_told else logging.WARNING
-            log.log(level, "line of sight and 3-D positions withheld: %s", ", ".join(codes))
-        elif before and not codes:
-            level = logging.DEBUG if before in self._withheld_told else logging.INFO
-            self._withheld_told.add(before)
-            log.log(level, "line of sight and 3-D positions published again")
-            self._reset_estimator(f"{', '.join(before)} cleared", level)
-        return codes
 
     def _track(
         self, frame: IrFrame, upd, state: str, pose: PoseAt | None, est, withheld_because: tuple[str, ...]
