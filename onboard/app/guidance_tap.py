@@ -180,8 +180,7 @@ class GuidanceTap:
                     if self._target is _LOST:
                         # a target still measured, with a pose, whose line of sight the daemon withholds (a zoom, a
                         # camera or gimbal mismatch: the status's geometry) is not lost: say which
-                        withheld = track.measurement_valid and track.pose_valid and track.los is None
-                        self._end_advice("geometry_withheld" if withheld else "target_lost")
+                        self._end_advice("geometry_withheld" if track.geometry_withheld else "target_lost")
                     elif isinstance(advice[2], tuple) and advice[2][0] == self._target[0]:
                         self._end_advice("estimate_reset")
                     else:

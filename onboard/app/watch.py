@@ -122,11 +122,9 @@ def _why_no_line_of_sight(track: Track) -> str:
     """Why a track with a pixel has no line of sight: no pose; a coasting tracker's predicted centre (never given
     one); or a measured one with a pose, whose geometry the daemon withholds (a zoom, camera or gimbal mismatch: the
     status's ``geometry`` and ``warnings`` name it)."""
-    if not track.pose_valid:
-        return "no pose"
-    if not track.measurement_valid:
-        return "predicted, no line of sight"
-    return "line of sight withheld: see the status's geometry"
+    if track.geometry_withheld:
+        return "line of sight withheld: see the status's geometry"
+    return "predicted, no line of sight" if track.pose_valid else "no pose"
 
 
 def format_track(track: Track) -> str:

@@ -558,6 +558,12 @@ class Track:
         return self.p_ned_m is not None
 
     @property
+    def geometry_withheld(self) -> bool:
+        """A measured centre with a pose and no line of sight: the daemon withholds the frame's geometry (a zoom, a
+        camera or gimbal mismatch: the status's ``geometry``), as every other such frame has one (module docstring)."""
+        return self.measurement_valid and self.pose_valid and self.los is None
+
+    @property
     def sigma_ned_m(self) -> tuple[float, float, float] | None:
         return None if self.cov_p_ned_m2 is None else _sigmas3(self.cov_p_ned_m2)
 
