@@ -137,6 +137,7 @@ from dataclasses import dataclass
 from onboard.core.checks import is_positive_number
 from onboard.core.errors import InputError
 from onboard.core.irframe import zoom_off_calibration
+from onboard.core.stream_rate import REASK_S
 
 __all__ = ["WatchdogWarning", "Watchdog", "INPUT_TIMEOUT_S", "NAV_GAP_S", "RESIDUAL_THRESHOLD"]
 
@@ -498,7 +499,7 @@ class Watchdog:
             ],
             "the autopilot caps the stream (its scheduler or the link's bandwidth: ArduPilot ACCEPTS and sends what it "
             "can), the link loses messages, or a ground station sharing the link lowered it (its rate is asked again "
-            "every 10 s while slow; MAVProxy: --streamrate=-1); poses are interpolated over wider gaps. Check the "
+            f"every {REASK_S:g} s while slow; MAVProxy: --streamrate=-1); poses are interpolated over wider gaps. Check the "
             "autopilot's stream rate limits and the link (status link.streams)",
         )
 

@@ -14,7 +14,7 @@ from __future__ import annotations
 from collections import deque
 from dataclasses import dataclass
 
-__all__ = ["RATE_WINDOW_S", "MIN_SPAN_S", "StreamRate", "StreamRates"]
+__all__ = ["RATE_WINDOW_S", "MIN_SPAN_S", "REASK_S", "StreamRate", "StreamRates"]
 
 #: the rate is measured over the last this many seconds (at least :data:`MIN_SPAN_S` of looks)
 RATE_WINDOW_S = 5.0
@@ -23,6 +23,9 @@ MIN_SPAN_S = 1.0
 #: slow (what a capped autopilot looks like)
 SLOW_FRACTION = 0.5
 SLOW_PERSIST_S = 3.0
+#: a slow stream's rate is asked again at most this often (:mod:`onboard.io.mavlink_rates`; here, where the
+#: watchdog's advice that says so reads it too)
+REASK_S = 10.0
 
 
 @dataclass(frozen=True)

@@ -25,16 +25,13 @@ from typing import Any
 from pymavlink.dialects.v20 import common as mavlink2
 
 from onboard.core.counters import RejectCounter
-from onboard.core.stream_rate import StreamRates
+from onboard.core.stream_rate import REASK_S, StreamRates
 from onboard.io.mavlink_config import MavlinkConfig
 from onboard.io.mavlink_wire import set_message_interval_message
 
 __all__ = ["REASK_S", "RateRequests"]
 
 log = logging.getLogger(__name__)
-
-#: a slow stream's rate is asked again at most this often (module docstring)
-REASK_S = 10.0
 
 _RESULT_NAMES = {
     v: k[len("MAV_RESULT_") :]

@@ -322,7 +322,7 @@ def test_the_daemons_own_parts_warn_estimator_restarts_a_stopped_or_lost_recordi
 
 
 def test_stream_rate_low_names_the_message_and_both_rates_once(caplog):
-    from onboard.core.stream_rate import StreamRate
+    from onboard.core.stream_rate import REASK_S, StreamRate
 
     wd = _wd()
     slow = [StreamRate(31, "ATTITUDE_QUATERNION", 100.0, 20.4, 10.0)]
@@ -332,6 +332,7 @@ def test_stream_rate_low_names_the_message_and_both_rates_once(caplog):
     (w,) = wd.active
     assert w.code == "stream_rate_low"
     assert "ATTITUDE_QUATERNION (#31) arrives at 19.8 Hz, 100 Hz requested" in w.message
+    assert f"asked again every {REASK_S:g} s while slow" in w.message  # what the link really does, not a copy
     assert sum("stream_rate_low" in r.getMessage() and r.levelno == logging.WARNING for r in caplog.records) == 1
     wd.stream_rates(22.0, [])
     assert wd.active == ()
