@@ -3,7 +3,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.irtrack-installed
 
-.PHONY: demo test lint bench venv clean bytecode
+.PHONY: demo test lint bench venv clean bytecode kernels
 
 # The pipeline is single-threaded by design; multi-threaded BLAS on small matrices only fights the
 # other processes for the two cores (a MAP solve went from 0.9 s to 8.5 s under load with threads).
@@ -25,8 +25,19 @@ venv: $(STAMP)
 bytecode: $(STAMP)
 	$(PY) -m compileall -q -j 0 onboard groundsim bench
 
+# The numba kernels (the daemon's and the simulator's) compiled once into their cache, after an install and when a
+# kernel's source changes (groundsim/app/warm.py says why): ~25 s on two cores the first time, so that the demo's
+# daemon serves at once and its simulator flies from its first second. A process that finds them uncached compiles
+# them itself: the tests need no such step.
+KERNELS := $(VENV)/.irtrack-kernels
+$(KERNELS): $(STAMP) $(wildcard onboard/*/kernels.py groundsim/world/render/*kernels.py)
+	$(PY) -m groundsim.app.warm
+	@touch $(KERNELS)
+
+kernels: $(KERNELS)
+
 # make demo LIVE_VIEW=8765: Foxglove's live view of the daemon on ws://127.0.0.1:8765
-demo: $(STAMP) bytecode
+demo: $(STAMP) bytecode $(KERNELS)
 	$(PY) -m groundsim demo $(if $(LIVE_VIEW),--live-view $(LIVE_VIEW))
 
 # Lint and types first (seconds): ruff over the tree (lint + format check), mypy over onboard.
