@@ -40,6 +40,7 @@ def pytest_collection_modifyitems(items):
     for item in items:
         if any(item.get_closest_marker(m) for m in PROCESS_MARKERS):
             item.add_marker(pytest.mark.xdist_group(PROCESS_GROUP))
+        if any(item.get_closest_marker(m) for m in (*PROCESS_MARKERS, "subprocess")):
             # first of the test's fixtures (a usefixtures mark added after collection is not read): before the
             # module-scoped ones that start the processes
             item.fixturenames.insert(0, "_compiled_kernels")
@@ -48,7 +49,7 @@ def pytest_collection_modifyitems(items):
 @pytest.fixture(scope="session")
 def _compiled_kernels():
     """The daemon's numba kernels and the simulator's clean-sky ones in numba's cache before a test starts
-    processes (groundsim/app/warm.py), once per worker.  On a fresh clone nothing is cached: four daemons
+    processes (groundsim/app/warm.py; ``integration``, ``multicore`` and ``subprocess`` tests), once per worker.  On a fresh clone nothing is cached: four daemons
     started at once (tests/test_integration.py's flights) each compiled ~13 s of CPU on two cores and published
     no status within the tests' 30 s, so that module failed when run first or alone, and passed in the whole
     suite only because earlier tests had filled the cache.  Cached, this costs about a second."""
