@@ -508,7 +508,7 @@ class OnboardService:
             track = with_utc(self.pipeline.process(frame, received_ns), self.utc.mapping)  # its UTC, once known
             now_s = self._clock()
             self.watchdog.frame_size(now_s, frame.width_px, frame.height_px)
-            self.watchdog.zoom(now_s, self.pipeline.last_zoom)
+            self.watchdog.zoom(now_s, self.pipeline.last_zoom, self.pipeline.zoom_withheld)
             self.watchdog.residual(now_s, track.residual_rms_norm)
             self.watchdog.navigation(now_s, self.pipeline.last_position_age_s)
             self.watchdog.camera_clock(now_s, self.pipeline.clock_apart_s)

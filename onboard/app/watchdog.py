@@ -136,7 +136,6 @@ from dataclasses import dataclass
 
 from onboard.core.checks import is_positive_number
 from onboard.core.errors import InputError
-from onboard.core.irframe import zoom_off_calibration
 from onboard.core.stream_rate import REASK_S
 
 __all__ = ["WatchdogWarning", "Watchdog", "INPUT_TIMEOUT_S", "NAV_GAP_S", "RESIDUAL_THRESHOLD"]
@@ -426,12 +425,15 @@ class Watchdog:
             f"camera that sends them",
         )
 
-    def zoom(self, now_s: float, stated_zoom: float | None) -> None:
+    def zoom(self, now_s: float, stated_zoom: float | None, withheld: bool) -> None:
         """The zoom the last frame taken stated (relative to the one ``camera.intrinsics`` were calibrated at; None:
-        not stated, taken as calibrated)."""
+        not stated, taken as calibrated), and whether the pipeline withheld that frame's geometry for it (its
+        decision, :func:`~onboard.core.irframe.zoom_off_calibration` with its hysteresis, taken as it is: a second
+        decision here, from the frames this sees, could disagree with what was published)."""
         self._hold(
             "zoom_mismatch",
-            zoom_off_calibration(stated_zoom, was_off="zoom_mismatch" in self._active)
+            withheld
+            and stated_zoom is not None
             and f"IR frames state a zoom of {stated_zoom:g}x but camera.intrinsics are for 1.0x (the zoom they were "
             f"calibrated at): every line of sight made with them would be off by that ratio, so lines of sight and "
             f"3-D positions are withheld (the 2-D track goes on); set the camera's zoom back to 1.0, or calibrate "

@@ -341,6 +341,12 @@ class FramePipeline:
         return self._withholding.last_zoom
 
     @property
+    def zoom_withheld(self) -> bool:
+        """The last frame taken had its geometry withheld for its stated zoom (its hysteresis included): what the
+        watchdog's ``zoom_mismatch`` says, from this one decision."""
+        return self._withholding.zoom_off
+
+    @property
     def frames_withheld_zoom(self) -> int:
         """Frames whose line of sight and 3-D position were withheld for their stated zoom."""
         return self._withholding.frames_withheld_zoom

@@ -246,7 +246,7 @@ def test_frames_stating_another_zoom_withhold_direction_and_position_from_the_fi
             adds = sum(c == "add" for c, _ in rig.est.calls)
             tr = rig.pipe.process(dataclasses.replace(rig.scene.frame(k), zoom=zoom), 0)
             added = sum(c == "add" for c, _ in rig.est.calls) - adds
-            wd.zoom((tr.time_boot_us - rig.scene.boot_us0) / 1e6, rig.pipe.last_zoom)
+            wd.zoom((tr.time_boot_us - rig.scene.boot_us0) / 1e6, rig.pipe.last_zoom, rig.pipe.zoom_withheld)
             tracks.append((tr, added, rig.pipe.withheld_because))
             active.append([w.code for w in wd.active])
     before, zoomed, after = tracks[:ZOOM_FROM], tracks[ZOOM_FROM:ZOOM_UNTIL], tracks[ZOOM_UNTIL:]

@@ -98,20 +98,26 @@ def test_frame_size_mismatch_names_both_sizes_once(caplog):
     assert wd.active == ()
 
 
-def test_a_stated_zoom_off_the_calibrated_one_is_warned_once_naming_it_and_cleared_by_frames_back_at_one(caplog):
+def test_a_zoom_the_pipeline_withheld_frames_for_is_warned_once_naming_it_and_cleared_when_it_stops(caplog):
+    """The watchdog says what the pipeline decided (its hysteresis: onboard/pipeline/withholding.py), never a
+    second decision of its own: a zoom 0.4 % off that the pipeline still withholds for is warned, a 2x zoom the
+    pipeline did not withhold (not decided yet) is not."""
     wd = _wd()
     with caplog.at_level(logging.INFO, logger="onboard.app.watchdog"):
-        for i, zoom in enumerate([None, 1.0, 1.004]):  # not stated, calibrated, within 0.5 %: nothing
-            wd.zoom(100.0 + i, zoom)
+        for i, zoom in enumerate([None, 1.0, 1.004]):
+            wd.zoom(100.0 + i, zoom, False)
+        wd.zoom(103.0, 2.0, False)
         assert wd.active == ()
         for i in range(10):
-            wd.zoom(110.0 + i, 2.0)
-        wd.zoom(121.0, 3.0)  # zoomed further: the message follows, no second WARNING
+            wd.zoom(110.0 + i, 2.0, True)
+        wd.zoom(121.0, 3.0, True)  # zoomed further: the message follows, no second WARNING
         assert [w.code for w in wd.active] == ["zoom_mismatch"] and "a zoom of 3x" in wd.active[0].message
-        wd.zoom(122.0, 1.0)
+        wd.zoom(121.5, 1.004, True)  # back within 0.5 % but not yet within 0.25 %: still withheld, still said
+        assert [w.code for w in wd.active] == ["zoom_mismatch"] and "a zoom of 1.004x" in wd.active[0].message
+        wd.zoom(122.0, 1.0, False)
         assert wd.active == ()
-        wd.zoom(123.0, 0.5)  # zoomed out: raised again, logged at INFO only
-        wd.zoom(124.0, None)  # a sender that stops stating it: taken as calibrated, as before the field
+        wd.zoom(123.0, 0.5, True)  # zoomed out: raised again, logged at INFO only
+        wd.zoom(124.0, None, False)  # a sender that stops stating it: taken as calibrated, as before the field
         assert wd.active == ()
     msgs = _warnings(caplog)
     assert len(msgs) == 1 and msgs[0].startswith("zoom_mismatch: IR frames state a zoom of 2x")
