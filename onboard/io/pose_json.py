@@ -4,7 +4,9 @@ back for replay (:mod:`onboard.app.replay`, :mod:`onboard.app.recorded_messages`
 
 Floats go out as they are (``json`` prints them by ``repr``), so a recorded pose reads back bit for bit; NaN goes out
 as null and comes back as NaN.  Reading checks what replay would otherwise take on trust (the camera's quaternions
-unit, its position finite) and raises :class:`~onboard.core.errors.InputError` naming where and the field.
+unit, its position finite; the times, spans and counts integers >= 0 as written, the gimbal's null or such an integer;
+the extrapolation sigmas finite numbers >= 0) and raises :class:`~onboard.core.errors.InputError` naming where and the
+field.
 """
 
 from __future__ import annotations
@@ -29,7 +31,28 @@ def _vec(v) -> list | None:
 
 
 def _arr(v) -> np.ndarray:
-    return np.array(v, dtype=float)  # a JSON null (None) becomes NaN
+    # a JSON null (None) becomes NaN; a lone number or null one of shape (1,), which the shape checks refuse (a 0-d
+    # array would break check_unit_quat's shape[-1])
+    return np.array(v, dtype=float, ndmin=1)
+
+
+def _count(obj: Mapping[str, Any], key: str, default: Any = None, optional: bool = False) -> Any:
+    """``obj[key]`` (``default`` when absent and one is given), an integer >= 0 as :func:`pose_to_json` writes it, or
+    null where ``optional``: not coerced, as ``int()`` would (1.5 read as 1, ``true`` as 1, ``"12"`` as 12)."""
+    v = obj[key] if default is None or key in obj else default
+    if v is None and optional:
+        return None
+    if type(v) is not int or v < 0:
+        raise ValueError(f"{key} must be an integer >= 0{' or null' if optional else ''}, got {v!r}")
+    return v
+
+
+def _sigma(obj: Mapping[str, Any], key: str) -> float:
+    """``obj[key]`` (0 when absent): a finite number >= 0, not a string ``float()`` would read (``"nan"``)."""
+    v = obj.get(key, 0.0)
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+        raise ValueError(f"{key} must be a finite number >= 0, got {v!r}")
+    return float(v)
 
 
 def pose_to_json(pose: PoseAt | None) -> dict[str, Any] | None:
@@ -67,7 +90,7 @@ def pose_from_json(obj: Mapping[str, Any] | None, where: str = "pose") -> PoseAt
     try:
         o = obj["origin"]
         body = PoseSample(
-            int(obj["time_boot_us"]), _arr(obj["p_ned_m"]), _arr(obj["v_ned_mps"]), _arr(obj["q_ned_from_body"])
+            _count(obj, "time_boot_us"), _arr(obj["p_ned_m"]), _arr(obj["v_ned_mps"]), _arr(obj["q_ned_from_body"])
         )
         # the stored body quaternion was already a checked unit quaternion: keep its exact bits
         object.__setattr__(body, "q_ned_from_body", _frozen(_arr(obj["q_ned_from_body"])))
@@ -86,21 +109,24 @@ def pose_from_json(obj: Mapping[str, Any] | None, where: str = "pose") -> PoseAt
             q_ned_from_cam=q_cam,
             q_mount_from_gimbal=g,
             origin=GeodeticOrigin(float(o["lat_deg"]), float(o["lon_deg"]), float(o["alt_m"])),
-            att_span_us=int(obj["att_span_us"]),
-            pos_span_us=int(obj["pos_span_us"]),
-            gimbal_span_us=obj.get("gimbal_span_us"),
-            epoch=int(obj["epoch"]),
-            att_extrapolated_us=int(obj.get("att_extrapolated_us", 0)),
-            pos_extrapolated_us=int(obj.get("pos_extrapolated_us", 0)),
-            gimbal_extrapolated_us=obj.get("gimbal_extrapolated_us"),
-            sigma_extrapolation_rad=float(obj.get("sigma_extrapolation_rad", 0.0)),
-            sigma_extrapolation_m=float(obj.get("sigma_extrapolation_m", 0.0)),
+            att_span_us=_count(obj, "att_span_us"),
+            pos_span_us=_count(obj, "pos_span_us"),
+            gimbal_span_us=_count(obj, "gimbal_span_us", optional=True) if "gimbal_span_us" in obj else None,
+            epoch=_count(obj, "epoch"),
+            att_extrapolated_us=_count(obj, "att_extrapolated_us", 0),
+            pos_extrapolated_us=_count(obj, "pos_extrapolated_us", 0),
+            gimbal_extrapolated_us=_count(obj, "gimbal_extrapolated_us", optional=True)
+            if "gimbal_extrapolated_us" in obj
+            else None,
+            sigma_extrapolation_rad=_sigma(obj, "sigma_extrapolation_rad"),
+            sigma_extrapolation_m=_sigma(obj, "sigma_extrapolation_m"),
             # a recording made before position resets were counted: its reboots are its only breaks
-            discontinuities=int(obj.get("discontinuities", obj["epoch"])),
+            discontinuities=_count(obj, "discontinuities", obj["epoch"]),
         )
     except KeyError as exc:
         raise InputError(f"{where}: missing field {exc.args[0]!r}") from None
-    except (TypeError, ValueError) as exc:
+    # (OverflowError: an integer too large for a float, an infinity for an integer)
+    except (TypeError, ValueError, OverflowError) as exc:
         raise InputError(f"{where}: {exc}") from None
 
 
