@@ -50,7 +50,11 @@ def signing_key_from_text(text: str | bytes, field: str, where: str = "") -> byt
         if len(digits) != 64:
             raise SigningKeyError(field, "64 hex digits for a key in hex", f"{len(digits)} hex digits{where}")
         return bytes.fromhex(digits)
-    return hashlib.sha256(text.encode("utf-8")).digest()
+    try:
+        passphrase = text.encode("utf-8")
+    except UnicodeEncodeError:  # an environment variable's bytes that are not UTF-8 (os.environ's lone surrogates)
+        raise SigningKeyError(field, _KEY_FORMS, f"text that is not UTF-8{where}") from None
+    return hashlib.sha256(passphrase).digest()
 
 
 def _is_text_line(data: bytes) -> bool:
