@@ -30,7 +30,7 @@ def rotation_base(path: str, index: int) -> str | None:
     if index == 0:
         return path
     tail = f".{index}.mcap"
-    return path[: -len(tail)] + ".mcap" if path.endswith(tail) and len(path) > len(tail) else None
+    return path[: -len(tail)] + ".mcap" if path.endswith(tail) else None
 
 
 def rotated_paths_after(base: str, index: int) -> list[str]:
