@@ -329,9 +329,12 @@ def test_the_arrival_estimate_runs_forward_stays_before_the_arrival_and_recovers
 def test_a_reboot_forgets_the_remembered_offset_and_the_arrival_history(offset_s, stamps, boot0_us, back_us, latency_s):
     clock = CommonClock()
     boot_us = boot0_us
+    for k in range(3):  # unstamped first (a daemon's first seconds): the arrival estimate has a history
+        boot_us += 33_333
+        assert clock.place("uav1", boot_us, None, T0_UNIX_S + k * 0.033).source == "arrival"
     for _ in range(stamps):
         boot_us += 33_333
-        clock.place("uav1", boot_us, round((boot_us / 1e6 + offset_s) * 1e6), boot_us / 1e6 + offset_s)
+        clock.place("uav1", boot_us, round((boot_us / 1e6 + offset_s) * 1e6), T0_UNIX_S)
     t_s, source = clock.time_s("uav1", boot_us + 33_333, None, 0.0)
     assert source == "remembered" and t_s == pytest.approx((boot_us + 33_333) / 1e6 + offset_s, abs=2e-6)
     rebooted_us = max(boot_us + 33_333 - back_us, 0)
