@@ -555,7 +555,7 @@ def check_unit_quat(q, what: str, tol: float = QUAT_NORM_TOL) -> np.ndarray:
         if abs(n1 - 1.0) > tol:
             raise FrameError(f"{what}: quaternion norm {n1:.6g} is not 1 within {tol}")
         return quat_normalize(q)
-    if q.shape[-1] != 4 or not np.all(np.isfinite(q)):
+    if q.ndim == 0 or q.shape[-1] != 4 or not np.all(np.isfinite(q)):  # a lone number has no last axis
         raise FrameError(f"{what}: quaternion must be 4 finite numbers (w, x, y, z)")
     n = np.linalg.norm(q, axis=-1)
     off = np.abs(n - 1.0)

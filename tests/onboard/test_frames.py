@@ -164,8 +164,9 @@ def test_slerp_end_points_midpoint_and_shortest_arc():
     assert fr.euler_from_quat(fr.quat_slerp(q0, -q1, 0.5))[2] == pytest.approx(0.5, abs=1e-12)
 
 
-@pytest.mark.parametrize("q", [[math.nan, 0, 0, 1], [0, 0, 0, 0], [1.0, 0.1, 0, 0]])
-def test_check_unit_quat_rejects_nan_zero_and_non_unit(q):
+@pytest.mark.parametrize("q", [[math.nan, 0, 0, 1], [0, 0, 0, 0], [1.0, 0.1, 0, 0], 1.0, np.float64(0.5), None])
+def test_check_unit_quat_rejects_nan_zero_non_unit_and_a_lone_number(q):
+    """A lone number (a 0-d array) is refused as the others are, not an IndexError from its missing last axis."""
     with pytest.raises(fr.FrameError, match="attitude"):
         fr.check_unit_quat(q, "attitude")
 
