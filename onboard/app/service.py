@@ -615,11 +615,15 @@ class OnboardService:
                 self.counter.count("follow_loop_error", f"{type(exc).__name__}: {exc}")
             for tap in self._setpoint_taps:
                 tap.setpoint_step(now, self.link)  # never raises
-            if now >= next_status or self.watchdog.changes != self._warnings_published:
-                # a warning raised or cleared goes out at once, not up to a status interval later
+            due = now >= next_status
+            if due or self.watchdog.changes != self._warnings_published:
+                # a warning raised or cleared goes out at once, not up to a status interval later; only the periodic
+                # status moves the schedule on: a warning that comes and goes with every frame (two cameras on the
+                # key) would otherwise push it an interval further at each change, minutes ahead in seconds
                 self._warnings_published = self.watchdog.changes
                 last_cpu = self._publish_status(now, last_cpu)
-                next_status = max(next_status + cfg.output.status_interval_s, now)
+                if due:
+                    next_status = max(next_status + cfg.output.status_interval_s, now)
             self._idle(turn_s, period, min(next_watch, next_status))
             turn_s = now = self._clock()
         # the counts as the run ends, on the status key: whoever watches it (a ground station, a demo stopping the

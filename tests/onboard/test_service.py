@@ -1446,3 +1446,27 @@ def test_the_cpu_status_adds_the_estimators_cpu_only_from_a_worker_process(worke
     svc, _ = _quiet_service({"estimator": {"enabled": False, "worker": worker}})
     svc.estimator = types.SimpleNamespace(worker_cpu_s=5.0)
     assert svc._worker_process_cpu() == counted
+
+
+def test_a_warning_flapping_with_every_frame_does_not_silence_the_periodic_status(monkeypatch):
+    """Each warning change publishes a status at once; it also pushed the periodic schedule an interval further,
+    so two cameras alternating sizes on the key (frame_size raised and cleared by every frame, 50 changes a second)
+    left the status key silent for minutes after they stopped."""
+    svc, clock = _quiet_service()
+    published: list[float] = []
+    monkeypatch.setattr(svc, "_publish_status", lambda now, last_cpu: published.append(now) or last_cpu)
+    flap_until_s = clock() + 6.0
+    turns = {"n": 0}
+
+    def idle(turn_s, period_s, next_own_s):  # one 20 ms turn of fake time; a frame of either camera in each
+        turns["n"] += 1
+        if clock() < flap_until_s:
+            svc.watchdog.frame_size(clock(), *((320, 256) if turns["n"] % 2 else (640, 512)))
+        clock.t_s += 0.02
+
+    monkeypatch.setattr(svc, "_idle", idle)
+    svc.run(max_duration_s=10.0)
+    interval_s = svc.config.output.status_interval_s
+    quiet = [t for t in published if t > flap_until_s + 0.1]  # the camera that flapped is gone: periodic only
+    assert len(quiet) >= int(3.9 / interval_s) - 1, (len(published), quiet[:5])
+    assert all(b - a <= interval_s + 0.05 for a, b in zip(quiet, quiet[1:]))
