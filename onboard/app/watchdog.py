@@ -10,7 +10,9 @@ seconds, its own clock) and what it saw; tests feed it a fake clock.  Each condi
     No MAVLink message for ``input_timeout_s``; the message names the connection string.
 ``frame_size``
     A frame whose size is not the configured camera's (refused as ``frame_dims_mismatch``); the
-    message names both sizes.  Cleared by the next frame of the right size.
+    message names both sizes.  Cleared by a frame of the right size once ``FRAME_SIZE_CLEAR_S`` (1 s)
+    have passed without another: a second camera of another size publishing on the key between the
+    configured one's frames keeps it raised, rather than raising and clearing it with every frame.
 ``camera_mismatch``
     The residuals are persistently inconsistent with the configured camera: every estimate for at
     least ``residual_persist_s`` (5 s, at least ``residual_min_samples`` estimates, so about five
@@ -147,6 +149,9 @@ RESIDUAL_THRESHOLD = 3.0
 RESIDUAL_PERSIST_S = 5.0
 RESIDUAL_MIN_SAMPLES = 10
 OVERLOAD_CLEAR_S = 5.0
+#: frame_size clears this long after the last frame of another size: two cameras alternating on the key raised and
+#: cleared it with every frame (50 status messages and 50 log lines a second)
+FRAME_SIZE_CLEAR_S = 1.0
 VIDEO_RATE_TOLERANCE = 0.2
 ROTATION_SILENT_S = 2.0
 ESTIMATOR_RESTART_CLEAR_S = 30.0
@@ -243,6 +248,7 @@ class Watchdog:
         self._load_since_s: float | None = None
         self._load_seen = (0, 0)  # dropped, stale since the overload was raised
         self._last_overload_s = -math.inf
+        self._size_mismatch_s = -math.inf  # the last frame of another size than the camera's
         self._active: dict[str, WatchdogWarning] = {}
         self._lock = threading.Lock()  # the service feeds frames from one thread, the clock from another
         self.warned: set[str] = set()
@@ -416,8 +422,10 @@ class Watchdog:
         """A frame of ``width_px x height_px`` arrived (any, accepted or not)."""
         cw, ch = self.camera_size_px
         if (int(width_px), int(height_px)) == (cw, ch):
-            self._clear("frame_size")
+            if now_s - self._size_mismatch_s >= FRAME_SIZE_CLEAR_S:
+                self._clear("frame_size")
             return
+        self._size_mismatch_s = float(now_s)
         self._raise(
             "frame_size",
             f"frames are {int(width_px)} x {int(height_px)} px but the configured camera is "

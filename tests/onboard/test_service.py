@@ -1450,8 +1450,8 @@ def test_the_cpu_status_adds_the_estimators_cpu_only_from_a_worker_process(worke
 
 def test_a_warning_flapping_with_every_frame_does_not_silence_the_periodic_status(monkeypatch):
     """Each warning change publishes a status at once; it also pushed the periodic schedule an interval further,
-    so two cameras alternating sizes on the key (frame_size raised and cleared by every frame, 50 changes a second)
-    left the status key silent for minutes after they stopped."""
+    so a warning raised and cleared by every frame (two cameras on the key, one stating a 2x zoom: zoom_mismatch,
+    50 changes a second) left the status key silent for minutes after they stopped."""
     svc, clock = _quiet_service()
     published: list[float] = []
     monkeypatch.setattr(svc, "_publish_status", lambda now, last_cpu: published.append(now) or last_cpu)
@@ -1461,7 +1461,7 @@ def test_a_warning_flapping_with_every_frame_does_not_silence_the_periodic_statu
     def idle(turn_s, period_s, next_own_s):  # one 20 ms turn of fake time; a frame of either camera in each
         turns["n"] += 1
         if clock() < flap_until_s:
-            svc.watchdog.frame_size(clock(), *((320, 256) if turns["n"] % 2 else (640, 512)))
+            svc.watchdog.zoom(clock(), 2.0 if turns["n"] % 2 else 1.0)
         clock.t_s += 0.02
 
     monkeypatch.setattr(svc, "_idle", idle)

@@ -371,3 +371,19 @@ def test_autopilot_duplicate_says_the_followed_one_is_silent():
     (w,) = wd.active
     assert "127.0.0.1:42710 silent for 3.0 s: a router restarted on a new port" in w.message
     assert "mavlink.heartbeat_timeout_s" in w.message and "MAV_SYS_ID" in w.message
+
+
+def test_frame_size_stays_raised_while_a_second_camera_of_another_size_alternates_with_the_configured_one(caplog):
+    """Raised by each 320 x 256 frame and cleared by each 640 x 512 one, it changed 50 times a second: a status
+    message and a log line each time.  It clears once FRAME_SIZE_CLEAR_S pass without a frame of another size."""
+    wd = _wd()
+    with caplog.at_level(logging.INFO, logger="onboard.app.watchdog"):
+        for i in range(60):  # two cameras at 30 Hz, interleaved, for a second
+            wd.frame_size(100.0 + i / 60, *((320, 256) if i % 2 else (640, 512)))
+        changes = wd.changes
+        assert [w.code for w in wd.active] == ["frame_size"] and changes == 1
+        assert len(caplog.records) == 1  # the warning, no "cleared" / "again" after it
+        wd.frame_size(101.5, 640, 512)  # 0.52 s after the last other frame: held
+        assert [w.code for w in wd.active] == ["frame_size"]
+        wd.frame_size(102.0, 640, 512)
+    assert wd.active == () and wd.changes == changes + 1
