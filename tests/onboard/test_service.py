@@ -1461,7 +1461,8 @@ def test_a_warning_flapping_with_every_frame_does_not_silence_the_periodic_statu
     def idle(turn_s, period_s, next_own_s):  # one 20 ms turn of fake time; a frame of either camera in each
         turns["n"] += 1
         if clock() < flap_until_s:
-            svc.watchdog.zoom(clock(), 2.0 if turns["n"] % 2 else 1.0)
+            flapping = bool(turns["n"] % 2)
+            svc.watchdog.zoom(clock(), 2.0 if flapping else 1.0, flapping)
         clock.t_s += 0.02
 
     monkeypatch.setattr(svc, "_idle", idle)
