@@ -50,6 +50,16 @@ seconds, its own clock) and what it saw; tests feed it a fake clock.  Each condi
     3-D.  An autopilot that heartbeats but stopped streaming (a stream rate reset, a refused SET_MESSAGE_INTERVAL)
     showed only in the counters.  Cleared by the next new sample.
 
+``frames_without_pose``
+    Every frame for ``FRAMES_WITHOUT_POSE_S`` (2 s) got no pose while the camera's rotation streams arrive (their
+    newest sample moved within ``INPUTS_LIVE_S``) and no other warning says why (``no_mavlink``, ``no_attitude``,
+    ``camera_clock_apart``, ``gimbal_mismatch``, ``gnss_dropout``: each names its own cause, and clears this one):
+    no line of sight and no 3-D, with only the ``pose_*`` counters to say so.  Frames stamped a little ahead of the
+    telemetry (200 ms: past what the pose buffer extrapolates, under the clock-step threshold
+    ``input.time_reset_threshold_s``) did this silently.  The message gives how far the last frame's stamp stood
+    ahead of or behind the telemetry's newest sample, and what to check: the camera's clock sync and capture
+    latency, and ``time_offset``.  Cleared by the first frame with a pose.
+
 ``estimator_restarted``
     The estimator's worker process died or hung and was replaced (``estimator.worker: process``): its window is
     rebuilt from the parent's copy, and meanwhile 3-D is carried or withheld.  Raised at each replacement, cleared
@@ -160,6 +170,9 @@ ESTIMATOR_RESTART_CLEAR_S = 30.0
 STALL_NAMED_S = 1.0
 ESTIMATOR_SILENT_S = 1.0  # a worker that has answered nothing this long is named as overload's cause
 INPUTS_LIVE_S = 1.0  # frames and MAVLink messages within this long count as arriving, for no_attitude
+FRAMES_WITHOUT_POSE_S = 2.0
+#: the warnings that name why frames get no pose themselves: frames_without_pose would only repeat them
+POSE_LOSS_NAMED = ("no_mavlink", "no_attitude", "camera_clock_apart", "gimbal_mismatch", "gnss_dropout")
 
 _log = logging.getLogger(__name__)
 
@@ -238,6 +251,9 @@ class Watchdog:
         self._estimator_restart_s = -math.inf
         self._rotation_newest_us: int | None = None
         self._rotation_since_s = float(started_s)
+        self._rotation_moved_s = -math.inf  # when the rotation streams' newest sample last moved (frames_without_pose)
+        self._poseless_since_s: float | None = None  # the first frame of the run without a pose
+        self._poseless_frames = 0
         self._frames_seen = 0
         self._mavlink_seen = 0
         self._mavlink_refused_seen = 0  # MAVLink messages signing refused, the running count
@@ -368,7 +384,7 @@ class Watchdog:
     def _rotation(self, now_s: float, newest_us: int | None, gimballed: bool) -> None:
         if newest_us is not None and newest_us != self._rotation_newest_us:
             self._rotation_newest_us = newest_us
-            self._rotation_since_s = float(now_s)
+            self._rotation_since_s = self._rotation_moved_s = float(now_s)
             self._clear("no_attitude")
             return
         silent_s = now_s - self._rotation_since_s
@@ -413,6 +429,41 @@ class Watchdog:
             )
         elif gimballed and gimbal_reports > 0:
             self._clear("gimbal_mismatch")
+
+    def frame_pose(self, now_s: float, has_pose: bool, stamp_from_telemetry_s: float | None) -> None:
+        """One processed frame: whether it got a pose, and how far its stamp stood from the telemetry's newest sample
+        when it was looked up (s; positive: ahead of it; None: no telemetry yet), for ``frames_without_pose``."""
+        if has_pose:
+            self._poseless_since_s, self._poseless_frames = None, 0
+            self._clear("frames_without_pose")
+            return
+        if self._poseless_since_s is None:
+            self._poseless_since_s = float(now_s)
+        self._poseless_frames += 1
+        if any(code in self._active for code in POSE_LOSS_NAMED):
+            self._clear("frames_without_pose")  # that warning says why, and what to do
+            return
+        lasted = now_s - self._poseless_since_s
+        if lasted < FRAMES_WITHOUT_POSE_S or stamp_from_telemetry_s is None:
+            return
+        if now_s - self._rotation_moved_s > INPUTS_LIVE_S:
+            return  # the telemetry stopped too: no_attitude's or no_mavlink's to say, once their time has come
+        ms = 1000.0 * stamp_from_telemetry_s
+        if ms > 0:
+            where = (
+                f"{ms:.0f} ms ahead of the telemetry's newest sample, later than the pose buffer extrapolates (the "
+                "clock-offset estimator needs a pose at the stamp, so it cannot measure this)"
+            )
+        else:
+            where = f"{-ms:.0f} ms behind the telemetry's newest sample"
+        self._raise(
+            "frames_without_pose",
+            f"no pose for the last {self._poseless_frames} frames ({lasted:.0f} s) while the telemetry arrives: the "
+            f"last frame was stamped {where}; no line of sight and no 3-D (the status's rejected pose_* say which "
+            "lookup failed); check the camera's clock sync (capture time on the autopilot's boot clock, through "
+            "TIMESYNC) and its capture latency, and time_offset (an offset within time_offset.max_offset_ms is "
+            "compensated once measured)",
+        )
 
     def frame_received(self, now_s: float) -> None:
         self._last_frame_s = float(now_s)

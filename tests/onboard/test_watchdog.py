@@ -387,3 +387,48 @@ def test_frame_size_stays_raised_while_a_second_camera_of_another_size_alternate
         assert [w.code for w in wd.active] == ["frame_size"]
         wd.frame_size(102.0, 640, 512)
     assert wd.active == () and wd.changes == changes + 1
+
+
+def test_frames_without_pose_while_the_telemetry_arrives_warn_within_2_s_naming_the_stamps_lead_and_clear():
+    """Frames stamped 200 ms ahead of the telemetry (under the clock-step threshold, past the extrapolation): no pose
+    on any frame, attitude arriving, and only the pose_* counters said so.  Frames at 30 Hz, the service's step at
+    2 Hz."""
+    wd = _wd()
+    n = 0
+
+    def run(t0_s: float, t1_s: float, *, has_pose: bool, lead_s: float | None, rotation_moves: bool = True):
+        nonlocal n
+        codes = []
+        for k in range(int(round((t1_s - t0_s) * 30))):
+            t_s = t0_s + k / 30
+            n += 1
+            if k % 15 == 0:
+                newest_us = int(t_s * 1e6) if rotation_moves else 1
+                wd.step(100.0 + t_s, frames_in=n, mavlink_rx=n, rotation=(newest_us, False))
+            wd.frame_pose(100.0 + t_s, has_pose, lead_s)
+            codes.append([w.code for w in wd.active])
+        return codes
+
+    assert run(0.0, 2.0, has_pose=True, lead_s=-0.01) == [[]] * 60
+    codes = run(2.0, 6.0, has_pose=False, lead_s=0.196)
+    assert codes[:59] == [[]] * 59 and codes[60:] == [["frames_without_pose"]] * 60  # raised at 2 s
+    msg = wd.active[0].message
+    assert "196 ms ahead of the telemetry" in msg and "clock sync" in msg and "time_offset" in msg, msg
+    assert run(6.0, 7.0, has_pose=True, lead_s=0.0) == [[]] * 30  # the first frame with a pose clears it
+    # behind: named so
+    run(7.0, 9.5, has_pose=False, lead_s=-0.7)
+    assert "700 ms behind" in wd.active[0].message
+    run(9.5, 10.0, has_pose=True, lead_s=0.0)
+    # the rotation streams stopped: no_attitude's business, not this one's
+    codes = run(10.0, 14.0, has_pose=False, lead_s=3.0, rotation_moves=False)
+    assert all("frames_without_pose" not in c for c in codes) and codes[-1] == ["no_attitude"]
+    # another warning that names the cause: this one clears and stays silent
+    wd2 = _wd()
+    for k in range(90):
+        if k % 15 == 0:
+            wd2.step(100.0 + k / 30, frames_in=k + 1, mavlink_rx=k + 1, rotation=(k + 1, False))
+        wd2.frame_pose(100.0 + k / 30, False, 0.2)
+    assert [w.code for w in wd2.active] == ["frames_without_pose"]
+    wd2.camera_clock(103.0, 5.0)
+    wd2.frame_pose(103.0, False, 5.0)
+    assert [w.code for w in wd2.active] == ["camera_clock_apart"]
