@@ -45,7 +45,11 @@ was; the estimate is ``confident`` once ``sigma_ms <= confident_sigma_ms`` (8) o
 blocks, ``estimating`` before, ``unknown`` with no block yet.  A block is closed early (and used if long enough)
 on a gap in the measurements, a new track or a time going backwards; a block whose residual RMS is
 ``outlier_factor`` (5) times the median of the blocks before (a centroid jumping between objects) is refused and
-counted.  The block length and the degree were chosen on P2 lockstep records (RTK noise, 30 s): 3 s and degree
+counted.  But a camera clock that stepped or drifts makes every later block such an outlier against the pool's
+offset, and a pool that refused them all held the old offset, confident, for the rest of the flight (0 ms after a
+step to -300 ms in the tests; -31 ms of a drift to -300 in the daemon): ``MOVED_RUN_BLOCKS`` (2) blocks refused in a
+row that each fit their own pooled offset within the same limit (which a jumping centroid does not) take the pool's
+place, the offset having moved, as a clock step is confirmed elsewhere by consecutive frames that agree.  The block length and the degree were chosen on P2 lockstep records (RTK noise, 30 s): 3 s and degree
 2 recovered 50 ms as 48.1 +- 4.2 ms and 0 ms as 2.7 +- 3.7 ms, both confident 7 s in; 2.5 s, 4 s or degree 3
 absorbed most of the gimbal's 3 to 7 s pointing motion into the target's polynomial (sigma 8 to 30 ms); longer
 blocks let the target's and observer's model errors in.
@@ -99,6 +103,8 @@ SIGNIFICANT_MIN_BLOCKS = 3
 #: the compensation takes a confident estimate whose variance is at most this share of the one it holds (module
 #: docstring, "Compensation"): twice the information, whatever the difference
 REFINE_VARIANCE_RATIO = 0.5
+#: refused blocks in a row that agree on an offset of their own restart the pool from them (module docstring)
+MOVED_RUN_BLOCKS = 2
 #: a frame's numbers kept for its block: bearing (3), q_ned_from_cam (4), camera position (3), velocity (3)
 ROW_SIZE = 13
 
@@ -248,6 +254,8 @@ class TimeOffsetEstimator:
         self._r: list[float] = []
         self._track_id: object = None
         self._refused = 0
+        #: the blocks refused in a row, the newest last: agreeing on another offset, they restart the pool
+        self._refused_run: collections.deque[_Block] = collections.deque(maxlen=MOVED_RUN_BLOCKS)
         self._compensated_ms = 0.0
         #: the sigma of the estimate the compensation holds (None: none held)
         self._compensated_sigma_ms: float | None = None
@@ -260,6 +268,7 @@ class TimeOffsetEstimator:
     def reset(self) -> None:
         """Forget everything (the clocks changed: an autopilot reboot, a camera restart); no compensation."""
         self._blocks.clear()
+        self._refused_run.clear()
         self._clear_block()
         self._compensated_ms = 0.0
         self._compensated_sigma_ms = None
@@ -338,10 +347,18 @@ class TimeOffsetEstimator:
         if len(self._blocks) >= 3:
             dt_s = self.estimate.estimate_ms / MS_PER_S if self.estimate.estimate_ms is not None else 0.0
             rms = [math.sqrt(k.residual_var(dt_s)) for k in self._blocks]
-            if math.sqrt(block.residual_var(dt_s)) > self.params.outlier_factor * float(np.median(rms)):
+            limit = self.params.outlier_factor * float(np.median(rms))
+            if math.sqrt(block.residual_var(dt_s)) > limit:
                 self._refused += 1
-                self.estimate = self._summarise()
-                return
+                self._refused_run.append(block)
+                if not self._offset_moved(limit):
+                    self.estimate = self._summarise()
+                    return
+                # the offset moved: the refused blocks agree on another one, at which they fit as well as the pool
+                # did at its own; what the pool holds is of the offset before
+                self._blocks.clear()
+                self._blocks.extend(list(self._refused_run)[:-1])
+            self._refused_run.clear()
         self._blocks.append(block)
         while self._blocks and self._blocks[0].t_end_s < block.t_end_s - self.params.window_s:
             self._blocks.popleft()
@@ -363,6 +380,20 @@ class TimeOffsetEstimator:
                 self.estimate = self._summarise()
 
     # ------------------------------------------------------------------ internals
+
+    def _offset_moved(self, limit: float) -> bool:
+        """The last :data:`MOVED_RUN_BLOCKS` blocks were all refused and agree on an offset of their own: each fits
+        it within ``limit`` (the outlier test's, from the pool's residuals at the pool's offset).  A centroid jumping
+        between objects fits no offset; a camera clock that stepped or drifts fits the new one as well as the pool fit
+        the old (module docstring, "Excitation")."""
+        run = self._refused_run
+        if len(run) < MOVED_RUN_BLOCKS:
+            return False
+        s_zx = sum(k.s_zx for k in run)
+        if s_zx <= 0:
+            return False
+        dt_s = sum(k.s_zy for k in run) / s_zx
+        return all(math.sqrt(k.residual_var(dt_s)) <= limit for k in run)
 
     def _clear_block(self) -> None:
         self._t, self._frames, self._r = [], [], []

@@ -286,3 +286,28 @@ def test_compensation_takes_an_estimate_resting_on_twice_the_information():
             assert e.sigma_ms**2 > REFINE_VARIANCE_RATIO * held_sigma_ms**2
     assert held_sigma_ms is not None and moves_within_two_sigmas >= 1
     assert est.compensated_ms == pytest.approx(50.0, abs=3 * held_sigma_ms)
+
+
+@pytest.mark.parametrize(("before_s", "after_s"), [(0.0, -0.3), (0.0, 0.05), (-0.3, 0.0)])
+def test_a_clock_that_stepped_is_followed_once_two_refused_blocks_agree_on_the_new_offset(before_s, after_s):
+    """Bearings clean enough that every block after the step is an outlier against the pool's offset: the pool
+    refused them all and held the old offset, confident, whatever the clock did (0 ms after a step to -300 ms).
+    Two refused blocks in a row that fit one offset of their own take the pool's place."""
+    est = TimeOffsetEstimator(TimeOffsetParams(compensate=False))
+    e = _feed_blocks(est, [before_s] * 4 + [after_s] * 5, seed=1, noise_rad=3e-5)
+    assert e.refused_blocks == 2
+    assert e.confident and e.estimate_ms == pytest.approx(1e3 * after_s, abs=max(3 * e.sigma_ms, 10.0)), e
+
+
+def test_two_blocks_of_a_jumping_centroid_in_a_row_do_not_restart_the_pool():
+    """Refused blocks that fit no offset (20 mrad of jitter: tens of pixels) are outliers, not a clock that moved."""
+    est = TimeOffsetEstimator()
+    rows = _recorded_calls(0.05, 22.0, seed=6)
+    rng = np.random.default_rng(7)
+    for args, kwargs in rows:
+        t, b = args[0], np.array(args[1])
+        if 12.2 < t < 17.8:
+            b = b + 0.02 * rng.standard_normal(3)
+        est.add(t, b, *args[2:], **kwargs)
+    assert est.estimate.refused_blocks == 2
+    assert est.estimate.estimate_ms == pytest.approx(50.0, abs=15.0)
