@@ -103,6 +103,7 @@ from onboard.pipeline.frame_pipeline import (
     FrameRejected,
     make_tracker,
 )
+from onboard.pipeline.withholding import CLOCK_OFFSET, clock_offset_withholds
 
 if TYPE_CHECKING:
     from onboard.io.gcs_link import GcsLink
@@ -117,7 +118,8 @@ WATCH_PERIOD_S = 0.5  # the watchdog's input checks in the main loop
 MIN_TAP_CLOSE_S = 0.1
 MAIN_LOOP_MAX_IDLE_S = 0.05  # the main loop's longest sleep without input (stop requests, timers it cannot see)
 #: the watchdog's warnings the pipeline withholds the geometry for (zoom_mismatch is not one: the pipeline decides
-#: it from each frame's own zoom, not a frame late from the watchdog's)
+#: it from each frame's own zoom, not a frame late from the watchdog's); camera_time_offset withholds it too, while the
+#: offset is not compensated (:func:`onboard.pipeline.withholding.clock_offset_withholds`)
 MISMATCH_WARNINGS = frozenset({"gimbal_mismatch", "camera_mismatch"})
 
 
@@ -228,6 +230,8 @@ class OnboardService:
         self.status_count = 0
         self._warnings_published = 0  # the watchdog's change count at the last status
         self._withheld_at = -1  # the watchdog's change count when the pipeline's withheld_because was set
+        self._offset_warned = False  # camera_time_offset was active then
+        self._offset_withholds = False  # ... and withheld the geometry, its offset not compensated
         self.watchdog = Watchdog(
             started_s=self._started_s,
             frame_key=frame_key(config.vehicle),
@@ -494,9 +498,22 @@ class OnboardService:
         # fail-safe: while the configured camera disagrees with the vehicle, no direction or position goes out
         # (looked up again when the watchdog's conditions changed: its change count is read before them)
         changes = self.watchdog.changes
-        if changes != self._withheld_at:
+        # a camera clock offset withholds while its warning holds and it is not compensated, which moves with the
+        # estimate (a block every 3 s), not with the warning: checked each frame, the warnings read when either moved
+        offset_withholds = self._offset_warned and clock_offset_withholds(
+            self.pipeline.time_offset_estimate, self.config.time_offset.warn_threshold_ms
+        )
+        if changes != self._withheld_at or offset_withholds != self._offset_withholds:
             self._withheld_at = changes
-            self.pipeline.withheld_because = tuple(w.code for w in self.watchdog.active if w.code in MISMATCH_WARNINGS)
+            codes = tuple(w.code for w in self.watchdog.active)
+            self._offset_warned = CLOCK_OFFSET in codes
+            offset_withholds = self._offset_warned and clock_offset_withholds(
+                self.pipeline.time_offset_estimate, self.config.time_offset.warn_threshold_ms
+            )
+            self._offset_withholds = offset_withholds
+            self.pipeline.withheld_because = tuple(
+                c for c in codes if c in MISMATCH_WARNINGS or (c == CLOCK_OFFSET and offset_withholds)
+            )
         withheld = self.pipeline.withheld_because
         if not self.mount.gimballed and "gimbal_mismatch" not in withheld and self.link is not None:
             # a gimbal reporting under a fixed mount: the watchdog names it at its next turn (2 Hz), but no frame

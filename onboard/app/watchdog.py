@@ -96,7 +96,11 @@ seconds, its own clock) and what it saw; tests feed it a fake clock.  Each condi
     ``time_offset.warn_threshold_ms`` (20 ms: at 0.1 rad/s of camera rotation, 2 mrad of line-of-sight error, twice
     the attitude noise) by more than two sigmas that can be trusted (a ``confident`` estimate's, or one pooled over
     three blocks: ``TimeOffsetEstimate.significantly_beyond``).  The message gives the offset,
-    its sigma and whether the pose lookup compensates it.  Cleared by a confident estimate at or below the
+    its sigma and whether the pose lookup compensates it.  While it holds and more than the threshold is left
+    uncompensated (beyond ``time_offset.max_offset_ms``, compensation off, or an offset that moved from the
+    compensation), the daemon withholds lines of sight and 3-D positions as for a mismatch
+    (:func:`~onboard.pipeline.withholding.clock_offset_withholds`): made with the pose of another instant, their
+    covariance does not hold.  Cleared by a confident estimate at or below the
     threshold; an estimate that is not confident (no target, a still camera) changes nothing.
 
 ``camera_clock_apart``
@@ -149,6 +153,7 @@ from dataclasses import dataclass
 from onboard.core.checks import is_positive_number
 from onboard.core.errors import InputError
 from onboard.core.stream_rate import REASK_S
+from onboard.pipeline.withholding import clock_offset_withholds
 
 __all__ = ["WatchdogWarning", "Watchdog", "INPUT_TIMEOUT_S", "NAV_GAP_S", "RESIDUAL_THRESHOLD"]
 
@@ -612,6 +617,8 @@ class Watchdog:
             if comp
             else "not compensated (time_offset.compensate is false or the offset is beyond time_offset.max_offset_ms)"
         )
+        if clock_offset_withholds(estimate, threshold_ms):
+            done += ", so lines of sight and 3-D positions are withheld (the 2-D track goes on)"
         self._raise(
             "camera_time_offset",
             f"IR frames are stamped {abs(dt_ms):.0f} +- {sigma_ms:.0f} ms {late} against the autopilot's clock "

@@ -1,6 +1,7 @@
 """What withholds a frame's line of sight and 3-D position in the frame pipeline
 (:class:`~onboard.pipeline.frame_pipeline.FramePipeline`, its module docstring, step 1): the warnings the daemon
-sets from its watchdog (``gimbal_mismatch``, ``camera_mismatch``), and the frame's own stated zoom
+sets from its watchdog (``gimbal_mismatch``, ``camera_mismatch``, and ``camera_time_offset`` while the offset is not
+compensated: :func:`clock_offset_withholds`), and the frame's own stated zoom
 (:data:`ZOOM_MISMATCH`: IRF1's zoom field, :func:`~onboard.core.irframe.zoom_off_calibration`), decided frame by
 frame; with the log lines that say when it begins and ends."""
 
@@ -11,12 +12,26 @@ import logging
 from onboard.core.counters import RejectCounter
 from onboard.core.irframe import IrFrame, zoom_off_calibration
 
-__all__ = ["ZOOM_MISMATCH", "Withholding"]
+__all__ = ["ZOOM_MISMATCH", "CLOCK_OFFSET", "clock_offset_withholds", "Withholding"]
 
 log = logging.getLogger("onboard.pipeline.frame_pipeline")  # the pipeline's lines, as they were written there
 
 #: the warning code a frame's own zoom withholds its geometry under
 ZOOM_MISMATCH = "zoom_mismatch"
+#: the warning code a camera clock offset left uncompensated withholds the geometry under (:func:`clock_offset_withholds`)
+CLOCK_OFFSET = "camera_time_offset"
+
+
+def clock_offset_withholds(estimate, threshold_ms: float) -> bool:
+    """Whether the camera clock's offset, while its warning (:data:`CLOCK_OFFSET`) holds, leaves more than
+    ``threshold_ms`` uncompensated (a :class:`~onboard.estimation.time_offset.TimeOffsetEstimate`; None: no
+    estimator, False): beyond ``time_offset.max_offset_ms``, with ``time_offset.compensate`` off, or a compensation
+    the offset has moved away from.  Each line of sight is then made with the pose of another instant, off by the
+    camera's rotation over the offset, which no covariance states: a constant 300 ms left 3-D positions 270 m off at
+    a Mahalanobis d^2 up to 4495 against their own covariance.  The daemon withholds them, as for a mismatch."""
+    if estimate is None or estimate.estimate_ms is None:
+        return False
+    return abs(float(estimate.estimate_ms) - float(estimate.compensated_ms)) > threshold_ms
 
 
 class Withholding:

@@ -940,6 +940,35 @@ def test_a_gimbal_under_a_fixed_mount_withholds_the_very_next_frames_direction()
     assert "gimbal_mismatch" in [w.code for w in svc.watchdog.active]
 
 
+def test_a_camera_clock_offset_not_compensated_withholds_direction_and_position_while_its_warning_holds():
+    """A constant -300 ms (beyond time_offset.max_offset_ms, never compensated) was warned, and its 3-D positions went
+    out 270 m off at a Mahalanobis d^2 up to 4495 against their own covariance.  Withheld while warned and not
+    compensated; a compensation that covers it, or the warning's clearing, publishes again."""
+    from onboard.core.irframe import IrFrame
+    from onboard.estimation.time_offset import TimeOffsetEstimate, TimeOffsetEstimator
+
+    svc, clock = _quiet_service()
+    svc.pipeline.time_offset = offset = TimeOffsetEstimator()
+    pixels = np.zeros((512, 640), np.uint8)
+    seq = 0
+
+    def frame_with(estimate_ms: float, sigma_ms: float, compensated_ms: float) -> tuple[str, ...]:
+        nonlocal seq
+        offset.estimate = TimeOffsetEstimate(estimate_ms, sigma_ms, "confident", compensated_ms, 3, 240, 0, 5.0)
+        clock.t_s += 1 / 30
+        svc._process(IrFrame(seq=seq, time_boot_us=1000 + 33_333 * seq, pixels=pixels), clock.ns())
+        seq += 1
+        return svc.pipeline.withheld_because
+
+    assert frame_with(-300.0, 10.0, 0.0) == ()  # the warning is raised after this frame
+    assert "camera_time_offset" in [w.code for w in svc.watchdog.active]
+    assert frame_with(-300.0, 10.0, 0.0) == ("camera_time_offset",)
+    assert svc.status(clock())["geometry"]["withheld_because"] == ["camera_time_offset"]
+    assert frame_with(-300.0, 10.0, -295.0) == ()  # compensated (the warning still says so): published
+    assert frame_with(-250.0, 10.0, -295.0) == ("camera_time_offset",)  # the offset moved off the compensation
+    assert frame_with(5.0, 2.0, 0.0) == () and svc.watchdog.active == ()  # back: nothing off, the warning cleared
+
+
 def test_frames_stating_a_2x_zoom_withhold_direction_and_position_from_the_first_and_the_status_says_so(caplog):
     """IRF1's zoom field through the daemon's own frame path (decode, _process, watchdog, status): a P1-like
     sequence whose frames state 2x from frame 10 to 19 and 1.0 again after."""
