@@ -696,7 +696,8 @@ class OnboardService:
 
     def _watch(self, now: float) -> None:
         with self._stats_lock:
-            frames_in = self.frames_in
+            frames_in, returns = self.frames_in, self.arrival_gaps.returns
+        self.watchdog.frame_sources(now, returns)
         rx = refused = None
         open_error = None
         if self.link is not None:

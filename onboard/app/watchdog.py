@@ -13,6 +13,14 @@ seconds, its own clock) and what it saw; tests feed it a fake clock.  Each condi
     message names both sizes.  Cleared by a frame of the right size once ``FRAME_SIZE_CLEAR_S`` (1 s)
     have passed without another: a second camera of another size publishing on the key between the
     configured one's frames keeps it raised, rather than raising and clearing it with every frame.
+``frame_sources``
+    Two (or more) senders publish frames on the frame key, each numbering its own: their sequence numbers interleave
+    (:attr:`onboard.pipeline.admission.ArrivalGaps.returns`, frames that come back to a numbering seen before, at
+    least ``FRAME_SOURCES_MIN_RETURNS`` (6) within ``FRAME_SOURCES_WINDOW_S`` (5 s)).  Frames of the same size and
+    encoding are all taken, each as the next frame of one stream: the track alternates between the two views (each
+    other frame counted ``frame_sequence_reset``).  A sender that restarts its numbering once leaves its old one for
+    good and is not warned.  Checked every 0.5 s, so raised within a second of the interleaving; cleared
+    ``FRAME_SOURCES_CLEAR_S`` (5 s) after the last return.
 ``camera_mismatch``
     The residuals are persistently inconsistent with the configured camera: every estimate for at
     least ``residual_persist_s`` (5 s, at least ``residual_min_samples`` estimates, so about five
@@ -145,6 +153,7 @@ INFO), coming back without a new WARNING.
 
 from __future__ import annotations
 
+import collections
 import logging
 import math
 import threading
@@ -167,6 +176,11 @@ OVERLOAD_CLEAR_S = 5.0
 #: frame_size clears this long after the last frame of another size: two cameras alternating on the key raised and
 #: cleared it with every frame (50 status messages and 50 log lines a second)
 FRAME_SIZE_CLEAR_S = 1.0
+#: frame_sources: this many returns to an earlier sequence numbering within the window are two senders interleaving (a
+#: restart's old numbering comes back once or twice, as a late frame or two; a second camera at 1 Hz returns 10 times)
+FRAME_SOURCES_MIN_RETURNS = 6
+FRAME_SOURCES_WINDOW_S = 5.0
+FRAME_SOURCES_CLEAR_S = 5.0
 VIDEO_RATE_TOLERANCE = 0.2
 ROTATION_SILENT_S = 2.0
 ESTIMATOR_RESTART_CLEAR_S = 30.0
@@ -270,6 +284,8 @@ class Watchdog:
         self._load_seen = (0, 0)  # dropped, stale since the overload was raised
         self._last_overload_s = -math.inf
         self._size_mismatch_s = -math.inf  # the last frame of another size than the camera's
+        self._source_returns: collections.deque[tuple[float, int]] = collections.deque()  # (now_s, returns so far)
+        self._source_return_s = -math.inf  # when the returns last grew
         self._active: dict[str, WatchdogWarning] = {}
         self._lock = threading.Lock()  # the service feeds frames from one thread, the clock from another
         self.warned: set[str] = set()
@@ -488,6 +504,28 @@ class Watchdog:
             f"{cw} x {ch} px (camera.intrinsics.width_px / height_px): they are refused; configure the "
             f"camera that sends them",
         )
+
+    def frame_sources(self, now_s: float, returns: int) -> None:
+        """The running count of frames that came back to a sequence numbering seen before, other than the previous
+        frame's (:attr:`onboard.pipeline.admission.ArrivalGaps.returns`), for ``frame_sources``."""
+        samples = self._source_returns
+        if samples and returns > samples[-1][1]:
+            self._source_return_s = float(now_s)
+        samples.append((float(now_s), int(returns)))
+        while len(samples) > 1 and samples[1][0] <= now_s - FRAME_SOURCES_WINDOW_S:
+            samples.popleft()  # the oldest kept is the count at the window's start
+        t0_s, r0 = samples[0]
+        n = int(returns) - r0
+        if n >= FRAME_SOURCES_MIN_RETURNS:
+            self._raise(
+                "frame_sources",
+                f"two or more senders publish frames on {self.frame_key}: their sequence numbers interleave ({n} "
+                f"returns to another numbering in {now_s - t0_s:.1f} s); frames alike in size and clock are all taken "
+                "as one stream's, so the track jumps between the views (rejected: frame_sequence_reset); configure one "
+                "camera per key, or let only the camera publish there (the zenoh ACL in deploy/)",
+            )
+        elif now_s - self._source_return_s >= FRAME_SOURCES_CLEAR_S:
+            self._clear("frame_sources")
 
     def zoom(self, now_s: float, stated_zoom: float | None, withheld: bool) -> None:
         """The zoom the last frame taken stated (relative to the one ``camera.intrinsics`` were calibrated at; None:

@@ -460,7 +460,8 @@ def build_status(
     """The ``irtrack.status/1`` object (published at 1 Hz on ``irtrack/<vehicle>/status``).
 
     ``frames``: ``in`` (payloads received), ``missing`` (frames the camera numbered that never arrived: lost on the way,
-    from the gaps in their sequence numbers; :class:`onboard.pipeline.admission.ArrivalGaps`), ``processed`` (a Track
+    from the gaps in their sequence numbers, each sender's numbering apart: a restart's new numbering or a second
+    sender's is no gap; :class:`onboard.pipeline.admission.ArrivalGaps`), ``processed`` (a Track
     was produced), ``dropped`` (oldest frames dropped because the pipeline was behind), ``rejected`` (invalid frames:
     sum of the ``frame_*`` reasons and of ``tracker_error`` / ``tracker_output_invalid``, frames the tracker failed
     on, and the frames a ``pipeline_error`` stopped before a Track), ``published`` (track messages put on zenoh).

@@ -69,6 +69,7 @@ __all__ = [
     "Admission",
     "FrameAdmission",
     "ArrivalGaps",
+    "MAX_NUMBERINGS",
 ]
 
 SEQ_MOD = 2**32
@@ -85,6 +86,8 @@ AHEAD_OF_RATE_US = 100_000
 #: ... and this far past the telemetry's newest time is an odd stamp, not the next frame: taken as the stream's
 #: newest it would have the good frames after it refused as behind it, until a run of them restarts the estimator
 AHEAD_OF_TELEMETRY_US = 250_000
+#: sequence numberings :class:`ArrivalGaps` follows at once (two senders on the key, a restart's old one)
+MAX_NUMBERINGS = 4
 
 
 @dataclass(frozen=True)
@@ -299,6 +302,17 @@ class FrameAdmission:
         return Admission(True, event, message, restart)
 
 
+class _Numbering:
+    """One sender's sequence numbering as :class:`ArrivalGaps` follows it."""
+
+    __slots__ = ("newest", "arrived", "seen_at")
+
+    def __init__(self, seq: int, seen_at: int) -> None:
+        self.newest = seq
+        self.arrived = 1  # bit k: frame newest - k arrived (k = 0 .. reorder)
+        self.seen_at = seen_at  # ArrivalGaps.arrivals when its last frame came
+
+
 class ArrivalGaps:
     """Frames the sender numbered that never arrived, from the gaps in the sequence numbers of the frames as they
     arrive (before the daemon's queue, whose own drops are counted apart): lost by the camera's sender, the network,
@@ -308,32 +322,75 @@ class ArrivalGaps:
     anew, not frames lost: counted as nothing).  A frame up to ``reorder`` behind the newest that had not arrived
     came late: one of those counted missing came after all.  One that had arrived (the last ``reorder`` are
     remembered), like any frame sent twice, changes nothing.  Further behind, the sender restarted its numbering:
-    taken as the new newest."""
+    taken as the new newest.
 
-    def __init__(self, max_gap: int = 1000, reorder: int = 8) -> None:
+    Several numberings are followed at once (up to ``MAX_NUMBERINGS``, each forgotten ``forget_after`` arrivals
+    after its last frame): a frame belongs to the one it is the nearest step of (forward up to ``max_gap``, back up
+    to ``reorder``), the most recent on a tie, and starts a new one when it is none's.  Two senders on one key (two
+    cameras, each numbering its frames) interleave two numberings: each counts its own gaps, and a jump from one to
+    the other is not frames lost (one numbering 300 ahead of the other counted 300 missing at every other frame).
+    A frame of a numbering seen before, other than the previous frame's, is counted in
+    ``returns``: a sender that restarted leaves its old numbering for good (none, or the odd late frame), two
+    senders come back to theirs with every frame.  Numberings closer than ``reorder`` to each other cannot be told
+    apart (their frames read as late or repeated ones)."""
+
+    def __init__(self, max_gap: int = 1000, reorder: int = 8, forget_after: int = 300) -> None:
         self.max_gap = int(max_gap)
         self.reorder = int(reorder)
-        self.newest: int | None = None
+        self.forget_after = int(forget_after)
         self.missing = 0
-        self._arrived = 0  # bit k: frame newest - k arrived (k = 0 .. reorder)
+        #: frames that came back to a numbering seen before, other than the previous frame's (class docstring)
+        self.returns = 0
+        self.arrivals = 0
+        self._numberings: list[_Numbering] = []  # the previous frame's first
         self._window = (1 << (self.reorder + 1)) - 1
+        # the last forward step that counted frames missing: (the newest before it, the newest it made, missing
+        # counted, arrivals then), undone when a new numbering starts within it soon after (the step
+        # was onto another sender's numbering, not past frames lost)
+        self._jump: tuple[int, int, int, int] | None = None
+
+    @property
+    def newest(self) -> int | None:
+        """The newest sequence number of the previous frame's numbering (None before any frame)."""
+        return self._numberings[0].newest if self._numberings else None
 
     def see(self, seq: int) -> None:
-        if self.newest is None:
-            self.newest, self._arrived = seq, 1
+        self.arrivals += 1
+        best: _Numbering | None = None
+        best_d = SEQ_MOD
+        for num in self._numberings:  # the most recent first: it keeps a tie
+            step = (seq - num.newest) % SEQ_MOD
+            d = step if step < SEQ_MOD // 2 else SEQ_MOD - step
+            if d < best_d and (d <= self.reorder or (step < SEQ_MOD // 2 and step <= self.max_gap)):
+                best, best_d = num, d
+        if best is None:
+            jump = self._jump
+            if jump is not None and self.arrivals - jump[3] <= self.reorder + 1:
+                before, after, counted, _ = jump
+                if 0 < (seq - before) % SEQ_MOD < (after - before) % SEQ_MOD:
+                    self.missing = max(0, self.missing - counted)
+                    self._jump = None
+            self._numberings = [
+                n for n in self._numberings[: MAX_NUMBERINGS - 1] if self.arrivals - n.seen_at <= self.forget_after
+            ]
+            self._numberings.insert(0, _Numbering(seq, self.arrivals))
             return
-        step = (seq - self.newest) % SEQ_MOD
+        if best is not self._numberings[0]:
+            self.returns += 1
+            self._numberings.remove(best)
+            self._numberings.insert(0, best)
+        best.seen_at = self.arrivals
+        step = (seq - best.newest) % SEQ_MOD
         if step == 0:
             return
         if step < SEQ_MOD // 2:
-            if step <= self.max_gap:
+            if step > 1:
                 self.missing += step - 1
-            self.newest = seq
-            self._arrived = ((self._arrived << min(step, self.reorder + 1)) | 1) & self._window
+                self._jump = (best.newest, seq, step - 1, self.arrivals)
+            best.newest = seq
+            best.arrived = ((best.arrived << min(step, self.reorder + 1)) | 1) & self._window
             return
         back = SEQ_MOD - step
-        if back > self.reorder:
-            self.newest, self._arrived = seq, 1
-        elif not self._arrived >> back & 1:
-            self._arrived |= 1 << back
+        if not best.arrived >> back & 1:
+            best.arrived |= 1 << back
             self.missing = max(0, self.missing - 1)

@@ -58,3 +58,42 @@ def test_a_sender_numbering_anew_is_not_frames_lost():
     assert _count([5, 6, 7, 10_000_000, 10_000_001, 10_000_003]) == 1
     assert _count([500, 501, 0, 1, 3]) == 1
     assert _count([SEQ_MOD - 2, SEQ_MOD - 1, 1]) == 1  # 0 lost across the wrap
+
+
+def _interleaved(a0: int, b0: int, n: int) -> list[int]:
+    """Two senders' frames alternating on the key, each numbering its own from ``a0`` and ``b0``."""
+    return [s for i in range(n) for s in (a0 + i, b0 + i)]
+
+
+def test_two_senders_interleaving_their_numberings_lose_no_frame_and_come_back_to_each_in_turn():
+    """Two cameras on one key, one numbering 300 ahead of the other: each jump between them was counted as the
+    frames in between lost (about 300 at every other frame); each counts its own gaps, and every frame after the
+    first two goes back to a numbering seen before."""
+    gaps = ArrivalGaps()
+    for s in _interleaved(300, 0, 180):
+        gaps.see(s)
+    assert gaps.missing == 0
+    assert gaps.returns == 2 * 180 - 2
+    seqs = _interleaved(300, 0, 180)
+    del seqs[101], seqs[50]  # one frame of each camera lost
+    assert _count(seqs) == 2
+
+
+def test_a_second_numbering_a_little_ahead_is_not_a_gap_of_the_first():
+    """The second sender's first frame lies within max_gap ahead: taken as a step of the first numbering until the
+    next frame, behind it, shows it was the other's."""
+    assert _count(_interleaved(300, 600, 60)) == 0
+    assert _count([*range(300, 310), *range(600, 602), *range(310, 320)]) == 0
+
+
+def test_a_sender_restarting_is_no_return():
+    """A restart leaves its old numbering for good: no return, whatever the jump; one late frame of the old
+    numbering, as the new one starts, is one return (or two)."""
+    gaps = ArrivalGaps()
+    for s in [*range(4990, 5000), *range(0, 100)]:
+        gaps.see(s)
+    assert (gaps.returns, gaps.missing) == (0, 0)
+    gaps = ArrivalGaps()
+    for s in [*range(4990, 4999), 0, 4999, *range(1, 100)]:
+        gaps.see(s)
+    assert (gaps.returns, gaps.missing) == (2, 0)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import re
 
 import pytest
 
@@ -432,3 +433,31 @@ def test_frames_without_pose_while_the_telemetry_arrives_warn_within_2_s_naming_
     wd2.camera_clock(103.0, 5.0)
     wd2.frame_pose(103.0, False, 5.0)
     assert [w.code for w in wd2.active] == ["camera_clock_apart"]
+
+
+def test_two_senders_interleaving_on_the_frame_key_are_warned_within_a_second_and_cleared_after_they_stop(caplog):
+    """Two cameras alternating their frames on the key (ArrivalGaps.returns growing 60 a second) were warned by
+    nothing: raised at the first check that sees them, held while they go on, cleared FRAME_SOURCES_CLEAR_S after;
+    a sender restarting (one return, or two with a late frame) is not two senders."""
+    from onboard.app.watchdog import FRAME_SOURCES_CLEAR_S
+
+    wd = _wd()
+    with caplog.at_level(logging.INFO, logger="onboard.app.watchdog"):
+        returns = 0
+        for i in range(20):  # 10 s of one sender that restarts twice, a late frame of the old numbering each time
+            returns += 2 if i in (4, 14) else 0
+            wd.frame_sources(100.0 + 0.5 * i, returns)
+        assert wd.active == ()
+        for i in range(20, 32):  # a second camera: 30 returns each half second
+            returns += 30
+            wd.frame_sources(100.0 + 0.5 * i, returns)
+            assert [w.code for w in wd.active] == ["frame_sources"]
+        t_s = 100.0 + 0.5 * 31
+        for i in range(1, 40):  # the second camera gone
+            wd.frame_sources(t_s + 0.5 * i, returns)
+            if 0.5 * i < FRAME_SOURCES_CLEAR_S:
+                assert [w.code for w in wd.active] == ["frame_sources"]
+        assert wd.active == ()
+    msgs = _warnings(caplog)
+    assert len(msgs) == 1 and msgs[0].startswith("frame_sources: two or more senders publish frames on " + KEY)
+    assert re.search(r"\(\d+ returns to another numbering in [\d.]+ s\)", msgs[0]) and "deploy/" in msgs[0]
