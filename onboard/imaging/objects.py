@@ -52,6 +52,7 @@ import math
 
 import numpy as np
 
+from onboard.core.counters import RejectCounter
 from onboard.core.errors import InputError
 from onboard.imaging.clutter import GREY16_PER_GREY8, ClutterParams, PointCandidate, frame_event, point_candidates
 from onboard.imaging.detect import Blob, Detection, measure_blob
@@ -153,6 +154,7 @@ class ObjectTracker:
         self.primary_changes = 0
         self.frozen_frames = 0
         self.offset_steps = 0
+        self._events = RejectCounter(logger=log)  # this chain's notable events, logged at the reject-log interval
         # gaps in the frames' times longer than a track coasts, over which every track was lost (_forget_after_gap)
         self.gap_losses = 0
         im = self.imaging
@@ -382,7 +384,13 @@ class ObjectTracker:
             return out
         if event == "step":
             self.offset_steps += 1
-            log.info("frame %d: offset step (flat-field correction); defect map restarted", self._frame_index)
+            # logged once an interval, with the count since: two cameras of different encodings alternating on the
+            # frame key step the offset at every frame, a log line each
+            self._events.count(
+                "imaging_offset_step",
+                f"frame {self._frame_index}: offset step (flat-field correction); defect map restarted",
+                level=logging.INFO,
+            )
             self.detector.restart()
         regular = self.detect(image)
         if callable(R_ned_from_cam):

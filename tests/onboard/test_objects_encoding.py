@@ -4,6 +4,7 @@ full scale, or shifted by 8 bits): the same tracks, since its floors and caps ar
 
 from __future__ import annotations
 
+import logging
 import math
 
 import numpy as np
@@ -116,3 +117,17 @@ def test_the_difference_cap_reads_a_widened_frame_kept_as_float_in_its_levels():
     assert two_level_difference_cap(*wide, uv, (0.0, 0.0), cap_levels) == math.inf  # a float frame of unknown levels
     wide[0][H_PX // 2, W_PX // 2] += 1.0  # one pixel off whole levels
     assert two_level_difference_cap(*wide, uv, (0.0, 0.0), cap_levels, level=GREY16_PER_GREY8) == math.inf
+
+
+def test_two_cameras_of_different_encodings_alternating_log_the_offset_step_once_an_interval(caplog):
+    """mono8 and mono16 frames of one size alternating (two cameras on the key): every frame is an offset step and
+    restarts the defect map, as before (counted in offset_steps), but it was logged at every frame: logged once,
+    then once per reject-log interval with the count since."""
+    frames = _frames(ground=False)
+    tr = ObjectTracker(K)
+    with caplog.at_level(logging.INFO, logger="onboard.imaging.objects"):
+        for i, f in enumerate(frames):
+            tr.update(f.astype(np.uint16) * 257 if i % 2 else f, np.eye(3))
+    steps = [r.getMessage() for r in caplog.records if "offset step" in r.getMessage()]
+    assert tr.offset_steps == N_FRAMES - 1
+    assert len(steps) == 1 and steps[0].startswith("imaging_offset_step: frame 1: offset step")
