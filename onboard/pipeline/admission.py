@@ -27,7 +27,8 @@ what is wrong with it, so that a status reader can tell a sender problem from a 
   taken just after boot).
 
 Accepted, and named by the event: ``""`` (the next frame), ``sequence_reset`` (time forward,
-sequence back: the sender restarted), ``time_reset`` (``TIME_CONFIRM_FRAMES`` mutually consistent
+sequence back: the sender restarted), ``sequence_repeated`` (time forward, the last frame's sequence number
+again: the sender did not number the frame anew), ``time_reset`` (``TIME_CONFIRM_FRAMES`` mutually consistent
 frames far from ``L``: a clock step or an autopilot reboot; the estimator restarts),
 ``stream_restart`` (``restart_count`` mutually consistent frames at most ``threshold_us`` before
 ``L``: the sender restarted its clock; the estimator restarts).  A run is consistent when each
@@ -95,7 +96,7 @@ class Admission:
     """The decision on one frame.
 
     ``accepted``; ``reason``: the refusal reason (``duplicate``, ``out_of_order``, ``time_ahead``,
-    ``time_behind``) or the accepted event (``""``, ``sequence_reset``, ``time_reset``,
+    ``time_behind``) or the accepted event (``""``, ``sequence_reset``, ``sequence_repeated``, ``time_reset``,
     ``stream_restart``); ``restart``: the estimator must restart (accepted steps only);
     ``message``: one line for the log, naming the frame and the stream's last accepted one.
     """
@@ -191,6 +192,14 @@ class FrameAdmission:
                         message=f"frame seq {seq} at time_boot_us {t_us} is past the stream's rate and {ahead}",
                     )  # fmt: skip
                 return self._accept(seq, t_us, "")
+            if seq == last_seq:  # not a sender numbering anew: one that did not move its counter on
+                return self._accept(
+                    seq,
+                    t_us,
+                    "sequence_repeated",
+                    f"seq {seq} again with a capture time {(t_us - last_t) / 1e6:+.3f} s later: the sender numbered "
+                    "two frames alike (or a second sender on the key)",
+                )
             return self._accept(
                 seq, t_us, "sequence_reset", f"seq {last_seq} -> {seq} while time moved forward: the sender restarted"
             )

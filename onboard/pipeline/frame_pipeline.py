@@ -15,7 +15,8 @@ Steps of :meth:`FramePipeline.process` (time ``t = frame.time_boot_us``, boot cl
    and stamp with other pixels, ``frame_out_of_order``, ``frame_time_ahead``, ``frame_time_behind``) and costs only
    itself; a clock step, an autopilot
    reboot or a sender restart is accepted once a run of mutually consistent frames confirms it
-   (``frame_time_reset``, ``frame_stream_restart``: the estimator restarts; ``frame_sequence_reset``).  After a
+   (``frame_time_reset``, ``frame_stream_restart``: the estimator restarts; ``frame_sequence_reset``;
+   ``frame_sequence_repeated``: the last frame's sequence number again, the capture time on).  After a
    step the telemetry did not share, the frames get no pose (``pose_clock_apart``, :attr:`FramePipeline.clock_apart_s`)
    until their stamps are within the threshold of the telemetry's again.  Then the frame's zoom (IRF1's field,
    :attr:`~onboard.core.irframe.IrFrame.stated_zoom`): one stated more than
@@ -78,7 +79,7 @@ in the shared :class:`~onboard.core.counters.RejectCounter`: ``frame_short``, ``
 frame's pixels); and, the tracker at fault, not the frame, ``tracker_error`` (``update`` raised) and
 ``tracker_output_invalid`` (its answer is no track update: None, a centre or box not finite, a measured centre off the
 frame, a negative box size, a track id below 1, an unknown state; :func:`~onboard.pipeline.answer_checks.tracker_problem`).  Notable accepted
-events: ``frame_time_reset``, ``frame_sequence_reset``, ``frame_stream_restart``, ``frame_encoding_changed`` (INFO: mono8
+events: ``frame_time_reset``, ``frame_sequence_reset``, ``frame_sequence_repeated``, ``frame_stream_restart``, ``frame_encoding_changed`` (INFO: mono8
 and mono16 alternating, a camera's mode or a second publisher), ``frame_zoom_invalid`` (step 1), ``estimator_pose_reset``
 (step 4).  Estimator problems never refuse a frame: they are counted as ``estimator_input`` (it refused its
 input), ``estimator_error`` (it raised) or ``estimator_output_invalid`` (its answer is not an estimate of the
@@ -151,7 +152,14 @@ TRACKER_REFUSALS = ("tracker_output_invalid", "tracker_error")
 #: ``frame_*`` counter keys of events on frames that were taken (module docstring), not refusals: the status's
 #: ``frames.rejected`` sums every other ``frame_*`` key
 ACCEPTED_FRAME_EVENTS = frozenset(
-    {"frame_time_reset", "frame_sequence_reset", "frame_stream_restart", "frame_encoding_changed", "frame_zoom_invalid"}
+    {
+        "frame_time_reset",
+        "frame_sequence_reset",
+        "frame_sequence_repeated",
+        "frame_stream_restart",
+        "frame_encoding_changed",
+        "frame_zoom_invalid",
+    }
 )
 
 

@@ -18,7 +18,7 @@ from onboard.core.errors import InputError
 from onboard.core.frames import GeodeticOrigin
 from onboard.core.status import RollingStats
 from onboard.core.track import LineOfSight, Track, track_to_bytes
-from onboard.pipeline.admission import FrameAdmission
+from onboard.pipeline.admission import Admission, FrameAdmission
 
 FINITE = st.floats(-1e6, 1e6, allow_nan=False, allow_infinity=False)
 POSITIVE = st.floats(0.0, 1e6, allow_nan=False, allow_infinity=False)
@@ -158,3 +158,14 @@ def test_the_worker_pipe_framing_is_connections(size):
     with pytest.raises(EOFError):
         recv_msg(a)
     a.close()
+
+
+def test_a_repeated_sequence_number_with_time_moving_on_is_named_so_not_a_restart():
+    """The last frame's seq again, a new capture time (a sender that did not move its counter on): taken, as
+    before, but counted as a sender restart (frame_sequence_reset), which it is not."""
+    adm = FrameAdmission(1_000_000, 5)
+    for k in range(5):
+        adm.admit(100 + k, 1_000_000 + 33_333 * k)
+    v = adm.admit(104, 1_000_000 + 33_333 * 5)
+    assert v.accepted and v.reason == "sequence_repeated" and "seq 104 again" in v.message and not v.restart
+    assert adm.admit(105, 1_000_000 + 33_333 * 6) == Admission(True, "")
