@@ -431,6 +431,9 @@ class OnboardService:
             for tap in self.taps:
                 tap.on_received(frame, received)  # never blocks: queued, or dropped and counted when behind
         except IrFrameError as exc:
+            if exc.seq is not None:  # it arrived, broken (counted below): not a frame lost on the way
+                with self._stats_lock:
+                    self.arrival_gaps.see(exc.seq)
             self.counter.count(f"frame_{exc.reason}", str(exc))
             return
         except Exception as exc:  # noqa: BLE001 - a callback must never raise into zenoh

@@ -110,13 +110,18 @@ class IrFrameError(InputError):
     ``'dims'`` (zero width/height or pixels not 2-D), ``'size'`` (payload length differs from
     header + width x height x depth), ``'too_large'`` (above ``max_bytes``), ``'field'``
     (a constructor field out of range: seq, time_boot_us).
+
+    ``seq``: the sequence number of a frame whose header was read whole (``'size'``: a frame cut short or padded on
+    the way), None otherwise: the frame arrived, broken, and a receiver counting the frames lost on the way by the
+    gaps in their numbers must not count it among them.
     """
 
-    def __init__(self, reason: str, message: str) -> None:
+    def __init__(self, reason: str, message: str, seq: int | None = None) -> None:
         if reason not in REJECT_REASONS:  # pragma: no cover - programming error
             raise ValueError(f"unknown IrFrameError reason {reason!r}")
         super().__init__(message)
         self.reason = reason
+        self.seq = seq
 
 
 @dataclass(frozen=True)
@@ -284,6 +289,7 @@ def decode_irframe(payload: bytes | bytearray | memoryview, max_bytes: int = DEF
             "size",
             f"IR frame payload is {n} bytes, expected {HEADER.size} + {width} x {height} x {dtype.itemsize}"
             f" = {HEADER.size + pixel_bytes}",
+            seq=seq,
         )
     pixels = np.frombuffer(mv, dtype=dtype, count=width * height, offset=HEADER.size).reshape(height, width)
     if not mv.readonly:

@@ -143,6 +143,16 @@ def test_each_bad_payload_is_rejected_with_its_reason(payload, reason):
     assert _reason(payload) == reason
 
 
+def test_a_frame_cut_short_names_its_sequence_number_and_a_bad_header_none():
+    """A receiver counting frames lost by the gaps in their numbers needs the number of one that arrived broken."""
+    with pytest.raises(IrFrameError) as e:
+        decode_irframe(_header(seq=42) + b"\x00" * 39)
+    assert (e.value.reason, e.value.seq) == ("size", 42)
+    with pytest.raises(IrFrameError) as e:
+        decode_irframe(_header(magic=b"IRF2", seq=42) + b"\x00" * 40)
+    assert e.value.seq is None
+
+
 def test_exact_size_boundaries_pass():
     f = decode_irframe(_header() + b"\x01" * 40)
     assert f.pixels.shape == (4, 5) and int(f.pixels[0, 0]) == 0x0101

@@ -1451,6 +1451,23 @@ def test_frames_dropped_from_a_burst_are_told_from_a_pipeline_behind(period_ns, 
     assert svc.frames_dropped == 6 and svc.frames_dropped_bunched == bunched
 
 
+def test_a_frame_cut_short_on_the_way_is_refused_not_counted_missing():
+    """Frames 3-5 truncated: counted frame_size (refused) and, the seq being read only after a decode that
+    succeeded, also frames.missing, as if lost on the way; in = processed + dropped + rejected + queued, and
+    in + missing is what the camera sent, so they were counted twice."""
+    import numpy as np
+
+    from onboard.core.irframe import IrFrame, encode_irframe
+
+    svc, _ = _quiet_service({"input": {"queue_length": 100}})
+    px = np.zeros((512, 640), np.uint8)
+    for k in range(10):
+        payload = encode_irframe(IrFrame(seq=k, time_boot_us=1_000_000 + 33_333 * k, pixels=px))
+        svc._on_frame(_Sample(payload[:-1000] if 3 <= k <= 5 else payload))
+    assert svc.counter["frame_size"] == 3 and len(svc.queue) == 7
+    assert svc.arrival_gaps.missing == 0
+
+
 class _Sample:
     """A zenoh sample as the frame callback reads it: untyped, its payload's length and bytes."""
 
