@@ -119,8 +119,9 @@ MIN_TAP_CLOSE_S = 0.1
 MAIN_LOOP_MAX_IDLE_S = 0.05  # the main loop's longest sleep without input (stop requests, timers it cannot see)
 #: the watchdog's warnings the pipeline withholds the geometry for (zoom_mismatch is not one: the pipeline decides
 #: it from each frame's own zoom, not a frame late from the watchdog's); camera_time_offset withholds it too, while the
-#: offset is not compensated (:func:`onboard.pipeline.withholding.clock_offset_withholds`)
-MISMATCH_WARNINGS = frozenset({"gimbal_mismatch", "camera_mismatch"})
+#: offset is not compensated (:func:`onboard.pipeline.withholding.clock_offset_withholds`); frame_sources: with two
+#: senders on the key no frame is known to come from the configured camera, its mount and intrinsics
+MISMATCH_WARNINGS = frozenset({"gimbal_mismatch", "camera_mismatch", "frame_sources"})
 
 
 class OnboardService:

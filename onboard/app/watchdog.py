@@ -18,7 +18,9 @@ seconds, its own clock) and what it saw; tests feed it a fake clock.  Each condi
     (:attr:`onboard.pipeline.admission.ArrivalGaps.returns`, frames that come back to a numbering seen before, at
     least ``FRAME_SOURCES_MIN_RETURNS`` (6) within ``FRAME_SOURCES_WINDOW_S`` (5 s)).  Frames of the same size and
     encoding are all taken, each as the next frame of one stream: the track alternates between the two views (each
-    other frame counted ``frame_sequence_reset``).  A sender that restarts its numbering once leaves its old one for
+    other frame counted ``frame_sequence_reset``), and none is known to be the configured camera's (its mount, its
+    intrinsics), so the daemon withholds lines of sight and 3-D positions while it holds.  A sender that restarts
+    its numbering once leaves its old one for
     good and is not warned.  Checked every 0.5 s, so raised within a second of the interleaving; cleared
     ``FRAME_SOURCES_CLEAR_S`` (5 s) after the last return.
 ``camera_mismatch``
@@ -521,8 +523,9 @@ class Watchdog:
                 "frame_sources",
                 f"two or more senders publish frames on {self.frame_key}: their sequence numbers interleave ({n} "
                 f"returns to another numbering in {now_s - t0_s:.1f} s); frames alike in size and clock are all taken "
-                "as one stream's, so the track jumps between the views (rejected: frame_sequence_reset); configure one "
-                "camera per key, or let only the camera publish there (the zenoh ACL in deploy/)",
+                "as one stream's, so the track jumps between the views (rejected: frame_sequence_reset), and no frame is known "
+                "to be the configured camera's: lines of sight and 3-D positions are withheld (the 2-D track goes "
+                "on); configure one camera per key, or let only the camera publish there (the zenoh ACL in deploy/)",
             )
         elif now_s - self._source_return_s >= FRAME_SOURCES_CLEAR_S:
             self._clear("frame_sources")

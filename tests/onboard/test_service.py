@@ -969,6 +969,35 @@ def test_a_camera_clock_offset_not_compensated_withholds_direction_and_position_
     assert frame_with(5.0, 2.0, 0.0) == () and svc.watchdog.active == ()  # back: nothing off, the warning cleared
 
 
+def test_two_senders_on_the_frame_key_withhold_direction_and_position_while_warned():
+    """Two numberings interleaving on the key (a second camera, or another vehicle's publishing under this one's name):
+    frame_sources is warned, and no line of sight goes out while it holds -- none of the frames is known to come
+    from the configured camera, its mount and intrinsics.  One numbering again: published after the warning clears."""
+    from onboard.core.irframe import IrFrame
+
+    svc, clock = _quiet_service()
+    pixels = np.zeros((512, 640), np.uint8)
+    svc._watch(clock())  # the watchdog's turn, every 0.5 s in the daemon
+    for k in range(12):  # the configured camera at 100.., another at 5000.., alternating
+        svc.arrival_gaps.see(100 + k)
+        svc.arrival_gaps.see(5000 + k)
+        clock.t_s += 1 / 15
+        if k % 4 == 3:
+            svc._watch(clock())
+    assert "frame_sources" in [w.code for w in svc.watchdog.active]
+    svc._process(IrFrame(seq=112, time_boot_us=1000, pixels=pixels), clock.ns())
+    assert svc.pipeline.withheld_because == ("frame_sources",)
+    assert "withheld" in next(w.message for w in svc.watchdog.active if w.code == "frame_sources")
+    for k in range(13, 200):  # the other sender gone: one numbering, past the warning's clearing time
+        svc.arrival_gaps.see(100 + k)
+        clock.t_s += 1 / 30
+        if k % 15 == 0:
+            svc._watch(clock())
+    svc._watch(clock())
+    svc._process(IrFrame(seq=300, time_boot_us=2_000_000, pixels=pixels), clock.ns())
+    assert "frame_sources" not in [w.code for w in svc.watchdog.active] and svc.pipeline.withheld_because == ()
+
+
 def test_frames_stating_a_2x_zoom_withhold_direction_and_position_from_the_first_and_the_status_says_so(caplog):
     """IRF1's zoom field through the daemon's own frame path (decode, _process, watchdog, status): a P1-like
     sequence whose frames state 2x from frame 10 to 19 and 1.0 again after."""
