@@ -225,6 +225,8 @@ ATTITUDE_STEP_RAD = math.radians(10.0)
 MAX_TURN_RPS = 2.0 * math.pi
 #: consecutive far-off stamps that agree with each other: a clock step, not an outlier
 TIME_CONFIRM_COUNT = 3
+#: misses of pose before the first one served are the start-up's (INFO) for this long of frame time, then faults
+STARTUP_S = 5.0
 #: a position outside these altitudes (AMSL, m) is refused (``position_alt_out_of_range``)
 MIN_ALT_M, MAX_ALT_M = -1_000.0, 50_000.0
 #: gimbal samples that feed the rate fit when the gimbal reports no rate (us)
@@ -277,8 +279,11 @@ class PoseBuffer:
         self._counted_at: tuple[int, str | None] | None = None  # the latest (time, outcome) pose_at counted
         # The streams arrive one after the other when the link comes up (the gimbal's first report, with
         # no rate to extrapolate by, can trail the first frames): a miss before the first pose served is the
-        # start-up's, not a fault, and is logged at INFO; the status counts it all the same.
+        # start-up's, not a fault, and is logged at INFO; the status counts it all the same.  Only for its first
+        # STARTUP_S of frame time: a camera whose stamps never get a pose (stamped ahead of the telemetry) is a fault,
+        # not a start-up that lasts the whole flight.
         self.served_pose = False
+        self._first_lookup_us: int | None = None
 
     # ------------------------------------------------------------------ state
 
@@ -895,10 +900,16 @@ class PoseBuffer:
         if res.pose is None:
             if repeated:
                 return None
+            t_us = time_boot_us if isinstance(time_boot_us, (int, np.integer)) else None  # else refused by lookup
+            if self._first_lookup_us is None and t_us is not None:
+                self._first_lookup_us = int(t_us)
+            start_up = not self.served_pose and (
+                t_us is None or self._first_lookup_us is None or t_us - self._first_lookup_us < STARTUP_S * US_PER_S
+            )
             self.counter.count(
                 f"pose_{res.reason}",
-                f"no pose at time_boot_us={time_boot_us!r}" + ("" if self.served_pose else " (start-up)"),
-                level=logging.WARNING if self.served_pose else logging.INFO,
+                f"no pose at time_boot_us={time_boot_us!r}" + (" (start-up)" if start_up else ""),
+                level=logging.INFO if start_up else logging.WARNING,
             )
             return None
         self.served_pose = True

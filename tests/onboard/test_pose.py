@@ -980,6 +980,24 @@ def test_a_miss_before_the_first_pose_is_start_up_info_and_after_it_a_warning(ca
     assert buf.counter.total == 2
 
 
+def test_misses_that_last_past_the_start_up_are_warnings_though_no_pose_was_ever_served(caplog):
+    """A camera stamping every frame ahead of the telemetry never gets a pose: its misses were labelled "(start-up)"
+    at INFO for the whole flight.  Past STARTUP_S of frame time they are faults, as after a served pose."""
+    from onboard.core.pose import STARTUP_S
+
+    buf = filled_buffer(counter=RejectCounter(log_interval_s=0.0))
+    logger = logging.getLogger("onboard.core.counters")
+    t0 = 9_000_000
+    with caplog.at_level(logging.INFO, logger="onboard.core.counters"):
+        logger.disabled = False
+        assert buf.pose_at(t0, extrapolate=False) is None
+        assert buf.pose_at(t0 + int(STARTUP_S * 1e6) - 1, extrapolate=False) is None
+        assert buf.pose_at(t0 + int(STARTUP_S * 1e6), extrapolate=False) is None
+    misses = [r for r in caplog.records if r.getMessage().startswith("pose_")]
+    assert [r.levelno for r in misses] == [logging.INFO, logging.INFO, logging.WARNING]
+    assert "(start-up)" in misses[1].getMessage() and "(start-up)" not in misses[2].getMessage()
+
+
 # --------------------------------------------------------------------------- GNSS gap: dead reckoning
 
 
