@@ -427,13 +427,11 @@ class ObjectTracker:
         integration and the detector's kept frames (the background difference's and the background motion's,
         counted in frames) are of that other time too."""
         self.gap_losses += 1
-        log.info(
-            "frame %d: %+.2f s since the last frame, %s: every track lost",
-            self._frame_index,
-            gap_s,
-            "back in time (the stream restarted)"
-            if gap_s < 0
-            else f"longer than a track coasts ({self.params.coast_frames} frames)",
+        why = "back in time" if gap_s < 0 else f"longer than a track coasts ({self.params.coast_frames} frames)"
+        self._events.count(  # once an interval: frames that keep going back in time would make it a line a frame
+            "imaging_gap_lost_tracks",
+            f"frame {self._frame_index}: {gap_s:+.2f} s since the last frame, {why}: every track lost",
+            level=logging.INFO,
         )
         self.clear_tracks()
         if self.tbd is not None:

@@ -488,3 +488,19 @@ def test_the_frames_time_going_back_loses_every_track():
     out = tr.update(_frame(rng, [(30.0, 40.0)], peak_netd=20.0), R_MOUNT, 1_000_000)
     assert tr.gap_losses == 1 and not out.confirmed and out.primary_id is None
     assert [o.state for o in out.objects] == ["tentative"]  # the point seen now: a new track, acquired afresh
+
+
+def test_frames_going_back_in_time_again_and_again_are_counted_each_and_logged_once(caplog):
+    """Two streams alternating (two senders on the key, a clock going back and forth): every frame loses every track,
+    and each was a log line; counted each time, logged once an interval."""
+    import logging
+
+    rng = np.random.default_rng(15)
+    tr = ObjectTracker(K, imaging=ImagingParams(chain="objects", tbd=False))
+    with caplog.at_level(logging.INFO, logger="onboard.imaging.objects"):
+        for k in range(20):
+            t_us = (20_000_000 if k % 2 else 1_000_000) + k * 33_333
+            tr.update(_frame(rng, [(80.0, 64.0)], peak_netd=20.0), R_MOUNT, t_us)
+    assert tr.gap_losses == 19
+    lines = [r for r in caplog.records if "every track lost" in r.getMessage()]
+    assert len(lines) == 1 and lines[0].getMessage().startswith("imaging_gap_lost_tracks: frame 1: +19.03 s")
