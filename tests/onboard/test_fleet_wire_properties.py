@@ -177,6 +177,12 @@ def check_accepted(track: Track, time_unix_us) -> None:
         with pytest.raises(InputError):
             ray_from_track(TimedTrack(track, T0_UNIX_S, "vehicle"), FLEET_ORIGIN)
         return
+    if los.sigma_azimuth_deg == 0 or los.sigma_elevation_deg == 0:
+        # the track schema allows a zero sigma (a direction it states as exact); a ray of infinite weight would
+        # decide a triangulation alone, so the fusion refuses it (counted bad_track, onboard/app/fuse.py)
+        with pytest.raises(InputError, match="must be a positive finite number of radians"):
+            ray_from_track(TimedTrack(track, T0_UNIX_S, "vehicle"), FLEET_ORIGIN)
+        return
     ray = ray_from_track(TimedTrack(track, T0_UNIX_S, "vehicle"), FLEET_ORIGIN)
     assert np.all(np.isfinite(ray.p_cam_ned_m)) and np.all(np.isfinite(ray.los_ned))
     assert abs(float(np.linalg.norm(ray.los_ned)) - 1.0) <= 1e-9
@@ -233,6 +239,7 @@ VALID = track_to_json(
 @example({"origin": {"lat_deg": 47.0, "lon_deg": 8.0, "alt_m": 1e200}}, set())
 @example({"camera_ned_m": [1e300, 0.0, 0.0]}, set())
 @example({"los_ned": [2**1100, 0, 0]}, set())
+@example({"los_sigma_az_deg": 0}, set())  # found by CI: in the schema's range, refused by the fusion's ray
 def test_a_valid_track_with_fields_changed_or_left_out_reads_in_range_or_is_refused(changed, dropped):
     obj = copy.deepcopy(VALID)
     obj.update(changed)
