@@ -20,6 +20,7 @@ import numpy as np
 from onboard.core.errors import InputError
 from onboard.core.frames import GeodeticOrigin, check_unit_quat
 from onboard.core.pose_types import PoseAt, PoseSample
+from onboard.core.track import ORIGIN_ALT_RANGE_M
 
 __all__ = ["pose_to_json", "pose_from_json"]
 
@@ -53,6 +54,16 @@ def _sigma(obj: Mapping[str, Any], key: str) -> float:
     if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
         raise ValueError(f"{key} must be a finite number >= 0, got {v!r}")
     return float(v)
+
+
+def _origin(o: Mapping[str, Any]) -> GeodeticOrigin:
+    """The pose's origin, its altitude within what a track's origin may have (``ORIGIN_ALT_RANGE_M``): a recorded
+    origin 1e300 m up made every position of the replay meaningless without a word."""
+    origin = GeodeticOrigin(float(o["lat_deg"]), float(o["lon_deg"]), float(o["alt_m"]))
+    lo, hi = ORIGIN_ALT_RANGE_M
+    if not lo <= origin.alt_m <= hi:
+        raise ValueError(f"origin.alt_m must be in [{lo:g}, {hi:g}] m, got {origin.alt_m!r}")
+    return origin
 
 
 def pose_to_json(pose: PoseAt | None) -> dict[str, Any] | None:
@@ -108,7 +119,7 @@ def pose_from_json(obj: Mapping[str, Any] | None, where: str = "pose") -> PoseAt
             p_cam_ned_m=p_cam,
             q_ned_from_cam=q_cam,
             q_mount_from_gimbal=g,
-            origin=GeodeticOrigin(float(o["lat_deg"]), float(o["lon_deg"]), float(o["alt_m"])),
+            origin=_origin(o),
             att_span_us=_count(obj, "att_span_us"),
             pos_span_us=_count(obj, "pos_span_us"),
             gimbal_span_us=_count(obj, "gimbal_span_us", optional=True) if "gimbal_span_us" in obj else None,

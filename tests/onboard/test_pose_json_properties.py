@@ -18,6 +18,7 @@ from hypothesis import strategies as st
 from onboard.core.errors import InputError
 from onboard.core.frames import GeodeticOrigin
 from onboard.core.pose_types import PoseAt, PoseSample
+from onboard.core.track import ORIGIN_ALT_RANGE_M
 from onboard.io.pose_json import pose_from_json, pose_to_json
 from tests.onboard.test_record import _pose
 
@@ -50,7 +51,9 @@ def poses(draw) -> PoseAt:
         p_cam_ned_m=np.array(draw(vec3)),
         q_ned_from_cam=draw(unit_quats()),
         q_mount_from_gimbal=draw(unit_quats()) if gimbal else None,
-        origin=GeodeticOrigin(draw(st.floats(-90.0, 90.0)), draw(st.floats(-180.0, 360.0)), draw(finite)),
+        origin=GeodeticOrigin(
+            draw(st.floats(-90.0, 90.0)), draw(st.floats(-180.0, 360.0)), draw(st.floats(*ORIGIN_ALT_RANGE_M))
+        ),
         att_span_us=draw(micros),
         pos_span_us=draw(micros),
         gimbal_span_us=draw(micros) if gimbal else None,
@@ -114,6 +117,7 @@ def check_read_pose(pose: PoseAt) -> None:
             assert q.shape == (4,) and abs(float(np.linalg.norm(q)) - 1.0) <= QUAT_TOL
     o = pose.origin
     assert all(math.isfinite(x) for x in (o.lat_deg, o.lon_deg, o.alt_m))
+    assert ORIGIN_ALT_RANGE_M[0] <= o.alt_m <= ORIGIN_ALT_RANGE_M[1]  # as a track's origin
 
 
 @settings(max_examples=60, deadline=None)
@@ -171,6 +175,7 @@ BASE = pose_to_json(_pose(123_456, 3))
 @example(field="discontinuities", value=-1)
 @example(field="q_ned_from_body", value=None)  # a 0-d array: IndexError escaped check_unit_quat
 @example(field="q_ned_from_cam", value=0.5)
+@example(field="origin", value={"lat_deg": 47.0, "lon_deg": 8.0, "alt_m": 1e300})  # read: every replayed position off
 def test_any_json_value_in_a_field_reads_as_a_pose_in_range_or_is_refused_naming_where(field, value):
     obj = copy.deepcopy(BASE)
     obj[field] = value
