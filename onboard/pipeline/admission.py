@@ -340,8 +340,10 @@ class ArrivalGaps:
     the other is not frames lost (one numbering 300 ahead of the other counted 300 missing at every other frame).
     A frame of a numbering seen before, other than the previous frame's, is counted in
     ``returns``: a sender that restarted leaves its old numbering for good (none, or the odd late frame), two
-    senders come back to theirs with every frame.  Numberings closer than ``reorder`` to each other cannot be told
-    apart (their frames read as late or repeated ones)."""
+    senders come back to theirs with every frame.  A numbering dropped to make room while its sender may still
+    publish (not yet forgotten) is counted in ``returns`` too: more senders than ``MAX_NUMBERINGS`` start a numbering
+    anew with every frame, and their frames come back to none.  Numberings closer than ``reorder`` to each other
+    cannot be told apart (their frames read as late or repeated ones)."""
 
     def __init__(self, max_gap: int = 1000, reorder: int = 8, forget_after: int = 300) -> None:
         self.max_gap = int(max_gap)
@@ -379,9 +381,12 @@ class ArrivalGaps:
                 if 0 < (seq - before) % SEQ_MOD < (after - before) % SEQ_MOD:
                     self.missing = max(0, self.missing - counted)
                     self._jump = None
-            self._numberings = [
-                n for n in self._numberings[: MAX_NUMBERINGS - 1] if self.arrivals - n.seen_at <= self.forget_after
-            ]
+            live = [n for n in self._numberings if self.arrivals - n.seen_at <= self.forget_after]
+            if len(live) >= MAX_NUMBERINGS:
+                # one is dropped whose sender may still publish: with more senders than numberings followed, each
+                # frame's numbering was dropped for the one before, and their frames would never be returns
+                self.returns += 1
+            self._numberings = live[: MAX_NUMBERINGS - 1]
             self._numberings.insert(0, _Numbering(seq, self.arrivals))
             return
         if best is not self._numberings[0]:

@@ -97,3 +97,24 @@ def test_a_sender_restarting_is_no_return():
     for s in [*range(4990, 4999), 0, 4999, *range(1, 100)]:
         gaps.see(s)
     assert (gaps.returns, gaps.missing) == (2, 0)
+
+
+def test_more_senders_than_the_numberings_followed_still_come_back_as_returns():
+    """Five senders in turn on one key, more than MAX_NUMBERINGS: each frame's numbering had been dropped for the
+    frame before, so every frame started one anew and none was a return (0 after 500 frames): frame_sources, which
+    reads the returns, never said so and their frames' lines of sight went out.  A numbering dropped while its
+    sender still publishes (within forget_after) is counted as a return; a sender restarting is still none."""
+    from onboard.pipeline.admission import MAX_NUMBERINGS
+
+    for senders in range(2, MAX_NUMBERINGS + 3):
+        gaps = ArrivalGaps()
+        for i in range(100):
+            for j in range(senders):
+                gaps.see(j * 100_000 + i)
+        assert gaps.returns >= 100 * senders - 2 * senders, (senders, gaps.returns)
+        assert gaps.missing == 0
+    gaps = ArrivalGaps()
+    for start in range(0, 10 * 100_000, 100_000):  # one sender restarting ten times, 100 frames each
+        for i in range(100):
+            gaps.see(start + 5_000 + i)
+    assert gaps.returns == 0  # at most three of its old numberings within forget_after: none dropped
