@@ -460,17 +460,22 @@ class Watchdog:
             self._poseless_since_s, self._poseless_frames = None, 0
             self._clear("frames_without_pose")
             return
+        if any(code in self._active for code in POSE_LOSS_NAMED):
+            self._poseless_since_s, self._poseless_frames = None, 0  # its 2 s start when that one clears
+            self._clear("frames_without_pose")  # that warning says why, and what to do
+            return
+        if stamp_from_telemetry_s is None or now_s - self._rotation_moved_s > INPUTS_LIVE_S:
+            # no telemetry yet, or it stopped: no_attitude's or no_mavlink's to say, once their time has come; the
+            # frames before it came do not count (a camera up before the autopilot's link is an ordinary start)
+            if "frames_without_pose" not in self._active:
+                self._poseless_since_s, self._poseless_frames = None, 0
+            return
         if self._poseless_since_s is None:
             self._poseless_since_s = float(now_s)
         self._poseless_frames += 1
-        if any(code in self._active for code in POSE_LOSS_NAMED):
-            self._clear("frames_without_pose")  # that warning says why, and what to do
-            return
         lasted = now_s - self._poseless_since_s
-        if lasted < FRAMES_WITHOUT_POSE_S or stamp_from_telemetry_s is None:
+        if lasted < FRAMES_WITHOUT_POSE_S:
             return
-        if now_s - self._rotation_moved_s > INPUTS_LIVE_S:
-            return  # the telemetry stopped too: no_attitude's or no_mavlink's to say, once their time has come
         ms = 1000.0 * stamp_from_telemetry_s
         if ms > 0:
             where = (

@@ -461,3 +461,28 @@ def test_two_senders_interleaving_on_the_frame_key_are_warned_within_a_second_an
     msgs = _warnings(caplog)
     assert len(msgs) == 1 and msgs[0].startswith("frame_sources: two or more senders publish frames on " + KEY)
     assert re.search(r"\(\d+ returns to another numbering in [\d.]+ s\)", msgs[0]) and "deploy/" in msgs[0]
+
+
+def test_frames_before_the_telemetry_starts_do_not_count_towards_frames_without_pose(caplog):
+    """The camera up 3 s before the autopilot's link (frames with no telemetry to stand against), then the first
+    frames after it gets no pose while the buffer fills: the 2 s ran from the run's first frame, so the first frame
+    looked up against telemetry raised frames_without_pose at once, a WARNING at an ordinary start.  The 2 s count
+    only frames without a pose while the telemetry arrives and no other warning names the cause."""
+    wd = _wd()
+    with caplog.at_level(logging.INFO, logger="onboard.app.watchdog"):
+        for k in range(90):  # 3 s at 30 Hz: no telemetry yet
+            wd.frame_pose(100.0 + k / 30, False, None)
+        for k in range(90, 96):  # the telemetry starts; the first six frames still get no pose
+            t_s = 100.0 + k / 30
+            wd.step(t_s, frames_in=k + 1, mavlink_rx=k - 89, rotation=(int(t_s * 1e6), False))
+            wd.frame_pose(t_s, False, 0.05)
+        assert "frames_without_pose" not in [w.code for w in wd.active]
+        for k in range(96, 200):  # and then none for more than 2 s: raised
+            t_s = 100.0 + k / 30
+            wd.step(t_s, frames_in=k + 1, mavlink_rx=k - 89, rotation=(int(t_s * 1e6), False))
+            wd.frame_pose(t_s, False, 0.2)
+        assert "frames_without_pose" in [w.code for w in wd.active]
+    (msg,) = _warnings(caplog)
+    assert msg.startswith("frames_without_pose: no pose for the last 61 frames (2 s)"), (
+        msg
+    )  # from the telemetry's start
