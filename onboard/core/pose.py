@@ -225,7 +225,8 @@ ATTITUDE_STEP_RAD = math.radians(10.0)
 MAX_TURN_RPS = 2.0 * math.pi
 #: consecutive far-off stamps that agree with each other: a clock step, not an outlier
 TIME_CONFIRM_COUNT = 3
-#: misses of pose before the first one served are the start-up's (INFO) for this long of frame time, then faults
+#: misses of pose before the first one served are the start-up's (INFO) for this long of frame time (from the earliest
+#: stamp looked up), then faults
 STARTUP_S = 5.0
 #: a position outside these altitudes (AMSL, m) is refused (``position_alt_out_of_range``)
 MIN_ALT_M, MAX_ALT_M = -1_000.0, 50_000.0
@@ -901,7 +902,9 @@ class PoseBuffer:
             if repeated:
                 return None
             t_us = time_boot_us if isinstance(time_boot_us, (int, np.integer)) else None  # else refused by lookup
-            if self._first_lookup_us is None and t_us is not None:
+            if t_us is not None and (self._first_lookup_us is None or t_us < self._first_lookup_us):
+                # the earliest stamp: a first frame stamped far ahead (its camera not yet synced) left every later
+                # one behind it, under STARTUP_S for good
                 self._first_lookup_us = int(t_us)
             start_up = not self.served_pose and (
                 t_us is None or self._first_lookup_us is None or t_us - self._first_lookup_us < STARTUP_S * US_PER_S

@@ -1128,3 +1128,23 @@ def test_a_flat_world_given_in_ned_keeps_its_attitudes_as_given():
     pose = buf.pose_at(10_000)
     np.testing.assert_allclose(quat_rotate(pose.q_ned_from_cam, CAM_Z), [0.0, 0.0, 1.0], atol=1e-12)
     np.testing.assert_allclose(pose.body.v_ned_mps, [10.0, 0.0, 0.0], atol=1e-12)
+
+
+def test_misses_after_a_first_stamp_far_ahead_still_end_the_start_up_after_startup_s(caplog):
+    """The first frame looked up stamped far ahead (a camera on its own clock before it syncs to the autopilot's),
+    the later ones on the autopilot's clock, behind that first stamp: their time since it stayed negative, under
+    STARTUP_S for good, and every miss of the flight was '(start-up)' at INFO again.  The start-up counts from the
+    earliest stamp looked up."""
+    from onboard.core.pose import STARTUP_S
+
+    buf = filled_buffer(counter=RejectCounter(log_interval_s=0.0))
+    logger = logging.getLogger("onboard.core.counters")
+    t0 = 9_000_000
+    with caplog.at_level(logging.INFO, logger="onboard.core.counters"):
+        logger.disabled = False
+        assert buf.pose_at(t0 + 3_600_000_000, extrapolate=False) is None
+        assert buf.pose_at(t0, extrapolate=False) is None
+        assert buf.pose_at(t0 + int(STARTUP_S * 1e6) - 1, extrapolate=False) is None
+        assert buf.pose_at(t0 + int(STARTUP_S * 1e6), extrapolate=False) is None
+    misses = [r for r in caplog.records if r.getMessage().startswith("pose_")]
+    assert [r.levelno for r in misses] == [logging.INFO, logging.INFO, logging.INFO, logging.WARNING]
