@@ -111,8 +111,9 @@ class IrFrameError(InputError):
     header + width x height x depth), ``'too_large'`` (above ``max_bytes``), ``'field'``
     (a constructor field out of range: seq, time_boot_us).
 
-    ``seq``: the sequence number of a frame whose header was read whole (``'size'``: a frame cut short or padded on
-    the way), None otherwise: the frame arrived, broken, and a receiver counting the frames lost on the way by the
+    ``seq``: the sequence number of a frame whose header was read whole, its magic and version this reader's
+    (``'encoding'``, ``'dims'``, ``'too_large'`` as the header claims it, ``'size'``: a frame cut short or padded on
+    the way), None otherwise: the frame arrived, refused, and a receiver counting the frames lost on the way by the
     gaps in their numbers must not count it among them.
     """
 
@@ -275,14 +276,15 @@ def decode_irframe(payload: bytes | bytearray | memoryview, max_bytes: int = DEF
         raise IrFrameError("version", f"IR frame version is {version}, this reader supports {VERSION}")
     dtype = _DTYPE_OF_ENCODING.get(encoding)
     if dtype is None:
-        raise IrFrameError("encoding", f"IR frame encoding is {encoding}, expected 1 (mono8) or 2 (mono16)")
+        raise IrFrameError("encoding", f"IR frame encoding is {encoding}, expected 1 (mono8) or 2 (mono16)", seq=seq)
     if width == 0 or height == 0:
-        raise IrFrameError("dims", f"IR frame dimensions {width} x {height} must both be >= 1")
+        raise IrFrameError("dims", f"IR frame dimensions {width} x {height} must both be >= 1", seq=seq)
     pixel_bytes = width * height * dtype.itemsize
     if HEADER.size + pixel_bytes > max_bytes:
         raise IrFrameError(
             "too_large",
             f"IR frame header claims {width} x {height} x {dtype.itemsize} bytes, above the limit of {max_bytes}",
+            seq=seq,
         )
     if n != HEADER.size + pixel_bytes:
         raise IrFrameError(

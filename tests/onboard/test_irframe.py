@@ -349,3 +349,21 @@ def test_a_zoom_outside_the_plausible_range_is_stray_bytes_read_as_not_stated(zo
 def test_zooms_a_camera_states_are_taken(zoom):
     g = decode_irframe(_header(zoom=zoom) + b"\x00" * 40)
     assert not g.zoom_invalid and g.stated_zoom == (None if zoom == 0.0 else pytest.approx(zoom))
+
+
+@pytest.mark.parametrize(
+    ("header", "reason"),
+    [
+        (_header(encoding=9, seq=42), "encoding"),
+        (_header(width=0, seq=42), "dims"),
+        (_header(width=60_000, height=60_000, seq=42), "too_large"),
+    ],
+    ids=["encoding", "dims", "too_large"],
+)
+def test_a_frame_refused_after_its_header_was_read_names_its_sequence_number(header, reason):
+    """Magic and version checked, the header's seq is the sender's: the frame arrived (refused and counted), and a
+    receiver counting frames lost by the gaps in their numbers must not count it missing as well (it did for these
+    three reasons, as it had for a frame cut short)."""
+    with pytest.raises(IrFrameError) as e:
+        decode_irframe(header + b"\x00" * 40)
+    assert (e.value.reason, e.value.seq) == (reason, 42)
