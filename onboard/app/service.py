@@ -505,14 +505,14 @@ class OnboardService:
         # a camera clock offset withholds while its warning holds and it is not compensated, which moves with the
         # estimate (a block every 3 s), not with the warning: checked each frame, the warnings read when either moved
         offset_withholds = self._offset_warned and clock_offset_withholds(
-            self.pipeline.time_offset_estimate, self.config.time_offset.warn_threshold_ms
+            self.pipeline.time_offset_estimate, self.config.time_offset.warn_threshold_ms, self._offset_withholds
         )
         if changes != self._withheld_at or offset_withholds != self._offset_withholds:
             self._withheld_at = changes
             codes = tuple(w.code for w in self.watchdog.active)
             self._offset_warned = CLOCK_OFFSET in codes
             offset_withholds = self._offset_warned and clock_offset_withholds(
-                self.pipeline.time_offset_estimate, self.config.time_offset.warn_threshold_ms
+                self.pipeline.time_offset_estimate, self.config.time_offset.warn_threshold_ms, self._offset_withholds
             )
             self._offset_withholds = offset_withholds
             self.pipeline.withheld_because = tuple(
@@ -538,7 +538,10 @@ class OnboardService:
                 now_s, track.pose_valid, None if newest_us is None else (frame.time_boot_us - newest_us) / 1e6
             )
             self.watchdog.camera_time_offset(
-                now_s, self.pipeline.time_offset_estimate, self.config.time_offset.warn_threshold_ms
+                now_s,
+                self.pipeline.time_offset_estimate,
+                self.config.time_offset.warn_threshold_ms,
+                withheld=self._offset_withholds,
             )
             return track
         except FrameRejected as exc:

@@ -164,7 +164,6 @@ from dataclasses import dataclass
 from onboard.core.checks import is_positive_number
 from onboard.core.errors import InputError
 from onboard.core.stream_rate import REASK_S
-from onboard.pipeline.withholding import clock_offset_withholds
 
 __all__ = ["WatchdogWarning", "Watchdog", "INPUT_TIMEOUT_S", "NAV_GAP_S", "RESIDUAL_THRESHOLD"]
 
@@ -644,9 +643,10 @@ class Watchdog:
             f"check the autopilot's time source",
         )
 
-    def camera_time_offset(self, now_s: float, estimate, threshold_ms: float) -> None:
+    def camera_time_offset(self, now_s: float, estimate, threshold_ms: float, withheld: bool = False) -> None:
         """The camera clock's offset now (a :class:`~onboard.estimation.time_offset.TimeOffsetEstimate`, or None
-        when the estimator is off: ignored) against ``threshold_ms``."""
+        when the estimator is off: ignored) against ``threshold_ms``; ``withheld``: the daemon withholds lines of sight
+        and 3-D positions for it (the message says so)."""
         if estimate is None or estimate.estimate_ms is None:
             return
         dt_ms, sigma_ms = float(estimate.estimate_ms), float(estimate.sigma_ms or 0.0)
@@ -663,7 +663,7 @@ class Watchdog:
             if comp
             else "not compensated (time_offset.compensate is false or the offset is beyond time_offset.max_offset_ms)"
         )
-        if clock_offset_withholds(estimate, threshold_ms):
+        if withheld:  # the daemon's decision (onboard/pipeline/withholding.py), said as it was taken
             done += ", so lines of sight and 3-D positions are withheld (the 2-D track goes on)"
         self._raise(
             "camera_time_offset",

@@ -22,16 +22,20 @@ ZOOM_MISMATCH = "zoom_mismatch"
 CLOCK_OFFSET = "camera_time_offset"
 
 
-def clock_offset_withholds(estimate, threshold_ms: float) -> bool:
+def clock_offset_withholds(estimate, threshold_ms: float, was_withholding: bool = False) -> bool:
     """Whether the camera clock's offset, while its warning (:data:`CLOCK_OFFSET`) holds, leaves more than
     ``threshold_ms`` uncompensated (a :class:`~onboard.estimation.time_offset.TimeOffsetEstimate`; None: no
     estimator, False): beyond ``time_offset.max_offset_ms``, with ``time_offset.compensate`` off, or a compensation
     the offset has moved away from.  Each line of sight is then made with the pose of another instant, off by the
     camera's rotation over the offset, which no covariance states: a constant 300 ms left 3-D positions 270 m off at
-    a Mahalanobis d^2 up to 4495 against their own covariance.  The daemon withholds them, as for a mismatch."""
+    a Mahalanobis d^2 up to 4495 against their own covariance.  The daemon withholds them, as for a mismatch.
+
+    ``was_withholding``: once withheld, until at most half the threshold is left (hysteresis): an estimate near the
+    threshold moves by a few ms with each 3 s block, and each end of a withholding restarts the 3-D estimate."""
     if estimate is None or estimate.estimate_ms is None:
         return False
-    return abs(float(estimate.estimate_ms) - float(estimate.compensated_ms)) > threshold_ms
+    left_ms = abs(float(estimate.estimate_ms) - float(estimate.compensated_ms))
+    return left_ms > (0.5 * threshold_ms if was_withholding else threshold_ms)
 
 
 class Withholding:

@@ -964,8 +964,14 @@ def test_a_camera_clock_offset_not_compensated_withholds_direction_and_position_
     assert "camera_time_offset" in [w.code for w in svc.watchdog.active]
     assert frame_with(-300.0, 10.0, 0.0) == ("camera_time_offset",)
     assert svc.status(clock())["geometry"]["withheld_because"] == ["camera_time_offset"]
+    assert "withheld" in next(w.message for w in svc.watchdog.active if w.code == "camera_time_offset")
     assert frame_with(-300.0, 10.0, -295.0) == ()  # compensated (the warning still says so): published
+    assert "withheld" not in next(w.message for w in svc.watchdog.active if w.code == "camera_time_offset")
     assert frame_with(-250.0, 10.0, -295.0) == ("camera_time_offset",)  # the offset moved off the compensation
+    # hysteresis: withheld until at most half the threshold (20 ms) is left, not released at 19 and taken at 21 again
+    assert frame_with(-280.0, 10.0, -295.0) == ("camera_time_offset",)  # 15 ms left: still withheld
+    assert frame_with(-286.0, 10.0, -295.0) == ()  # 9 ms left: published
+    assert frame_with(-280.0, 10.0, -295.0) == ()  # 15 ms again: not withheld until 20 are left
     assert frame_with(5.0, 2.0, 0.0) == () and svc.watchdog.active == ()  # back: nothing off, the warning cleared
 
 
