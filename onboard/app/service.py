@@ -114,6 +114,7 @@ __all__ = ["OnboardService"]
 log = logging.getLogger(__name__)
 
 WATCH_PERIOD_S = 0.5  # the watchdog's input checks in the main loop
+WARNING_STATUS_MIN_S = 0.2  # a warning's change is published at once, but at most this often (the loop in run)
 #: an output tap's close gets at least this long past a shutdown deadline: enough to finish a file's summary
 MIN_TAP_CLOSE_S = 0.1
 MAIN_LOOP_MAX_IDLE_S = 0.05  # the main loop's longest sleep without input (stop requests, timers it cannot see)
@@ -609,6 +610,7 @@ class OnboardService:
         now = self._clock()
         end = math.inf if max_duration_s is None else now + max_duration_s
         next_status = now + cfg.output.status_interval_s
+        last_status_s = -math.inf  # the last status published (warning changes go out at most each WARNING_STATUS_MIN_S)
         last_cpu = (now, time.process_time(), self._pipeline_cpu_s + self._worker_cpu())
         next_watch = now
         turn_s = now
@@ -644,15 +646,21 @@ class OnboardService:
             for tap in self._setpoint_taps:
                 tap.setpoint_step(now, self.link)  # never raises
             due = now >= next_status
-            if due or self.watchdog.changes != self._warnings_published:
-                # a warning raised or cleared goes out at once, not up to a status interval later; only the periodic
-                # status moves the schedule on: a warning that comes and goes with every frame (two cameras on the
-                # key) would otherwise push it an interval further at each change, minutes ahead in seconds
+            changed = self.watchdog.changes != self._warnings_published
+            if due or (changed and now - last_status_s >= WARNING_STATUS_MIN_S):
+                # a warning raised or cleared goes out at once, not up to a status interval later, but at most once
+                # each WARNING_STATUS_MIN_S (a warning flapping with every loop turn made a status a turn); only the
+                # periodic status moves the schedule on: a warning that comes and goes with every frame (two cameras
+                # on the key) would otherwise push it an interval further at each change, minutes ahead in seconds
                 self._warnings_published = self.watchdog.changes
                 last_cpu = self._publish_status(now, last_cpu)
+                last_status_s = now
                 if due:
                     next_status = max(next_status + cfg.output.status_interval_s, now)
-            self._idle(turn_s, period, min(next_watch, next_status))
+            wake_s = min(next_watch, next_status)
+            if self.watchdog.changes != self._warnings_published:
+                wake_s = min(wake_s, last_status_s + WARNING_STATUS_MIN_S)  # the held change, as soon as it may go
+            self._idle(turn_s, period, wake_s)
             turn_s = now = self._clock()
         # the counts as the run ends, on the status key: whoever watches it (a ground station, a demo stopping the
         # daemon) sees how the run ended, not the last periodic status up to an interval before it

@@ -1533,6 +1533,8 @@ def test_a_warning_flapping_with_every_frame_does_not_silence_the_periodic_statu
     """Each warning change publishes a status at once; it also pushed the periodic schedule an interval further,
     so a warning raised and cleared by every frame (two cameras on the key, one stating a 2x zoom: zoom_mismatch,
     50 changes a second) left the status key silent for minutes after they stopped."""
+    from onboard.app.service import WARNING_STATUS_MIN_S
+
     svc, clock = _quiet_service()
     published: list[float] = []
     monkeypatch.setattr(svc, "_publish_status", lambda now, last_cpu: published.append(now) or last_cpu)
@@ -1550,5 +1552,8 @@ def test_a_warning_flapping_with_every_frame_does_not_silence_the_periodic_statu
     svc.run(max_duration_s=10.0)
     interval_s = svc.config.output.status_interval_s
     quiet = [t for t in published if t > flap_until_s + 0.1]  # the camera that flapped is gone: periodic only
+    flapping = [t for t in published if t <= flap_until_s]
+    # each change at once, but at most one status each WARNING_STATUS_MIN_S (one a 20 ms turn before: ~300 in 6 s)
+    assert len(flapping) <= 6.0 / WARNING_STATUS_MIN_S + 6.0 / interval_s + 2, len(flapping)
     assert len(quiet) >= int(3.9 / interval_s) - 1, (len(published), quiet[:5])
     assert all(b - a <= interval_s + 0.05 for a, b in zip(quiet, quiet[1:]))
