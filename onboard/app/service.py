@@ -610,7 +610,7 @@ class OnboardService:
         now = self._clock()
         end = math.inf if max_duration_s is None else now + max_duration_s
         next_status = now + cfg.output.status_interval_s
-        last_status_s = -math.inf  # the last status published (warning changes go out at most each WARNING_STATUS_MIN_S)
+        last_status_s = -math.inf  # the last status published (warning changes: at most each WARNING_STATUS_MIN_S)
         last_cpu = (now, time.process_time(), self._pipeline_cpu_s + self._worker_cpu())
         next_watch = now
         turn_s = now
