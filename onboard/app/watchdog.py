@@ -22,7 +22,10 @@ seconds, its own clock) and what it saw; tests feed it a fake clock.  Each condi
     intrinsics), so the daemon withholds lines of sight and 3-D positions while it holds.  A sender that restarts
     its numbering once leaves its old one for
     good and is not warned.  Checked every 0.5 s, so raised within a second of the interleaving; cleared
-    ``FRAME_SOURCES_CLEAR_S`` (5 s) after the last return.
+    ``FRAME_SOURCES_CLEAR_S`` (5 s) after the last return.  A second sender slower than about one frame per
+    1.7 s (each of its frames makes two returns, to its numbering and back: 6 in 5 s) is not warned, and one slower than one frame per
+    ``forget_after`` frames of the other (``ArrivalGaps``: 10 s at 30 Hz) is forgotten between its frames: each of
+    its frames then reads as a sender restart (``frame_sequence_reset``, counted).
 ``camera_mismatch``
     The residuals are persistently inconsistent with the configured camera: every estimate for at
     least ``residual_persist_s`` (5 s, at least ``residual_min_samples`` estimates, so about five
