@@ -49,10 +49,32 @@ counted.  But a camera clock that stepped or drifts makes every later block such
 offset, and a pool that refused them all held the old offset, confident, for the rest of the flight (0 ms after a
 step to -300 ms in the tests; -31 ms of a drift to -300 in the daemon): ``MOVED_RUN_BLOCKS`` (2) blocks refused in a
 row that each fit their own pooled offset within the same limit (which a jumping centroid does not) take the pool's
-place, the offset having moved, as a clock step is confirmed elsewhere by consecutive frames that agree.  The block length and the degree were chosen on P2 lockstep records (RTK noise, 30 s): 3 s and degree
-2 recovered 50 ms as 48.1 +- 4.2 ms and 0 ms as 2.7 +- 3.7 ms, both confident 7 s in; 2.5 s, 4 s or degree 3
+place, the offset having moved, as a clock step is confirmed elsewhere by consecutive frames that agree.  The block
+length and the degree were chosen on P2 lockstep records (RTK noise, 30 s): 3 s and degree 2 recovered 50 ms as 48.1 +- 4.2 ms and 0 ms as 2.7 +- 3.7 ms, both confident 7 s in; 2.5 s, 4 s or degree 3
 absorbed most of the gimbal's 3 to 7 s pointing motion into the target's polynomial (sigma 8 to 30 ms); longer
 blocks let the target's and observer's model errors in.
+
+Consistency.  Most blocks after a step or along a drift are no outliers (at the bearings' noise their residuals
+hardly grow), and a pool of them is a mixture of offsets: -300 ms followed by 0 read -247 +- 32 ms in the daemon,
+within ``max_offset_ms``, and the pose lookup compensated 247 ms that no longer existed; a drift from 0 to -300 ms
+over 20 s read -83 +- 35, never significant.  So after each block the pool is tested as one offset, and its oldest
+blocks dropped until it passes: the newest consistent run is the offset now.  Each block's ``dt_k`` has the variance
+``sigma_k^2 + floor^2 + (rel dt_k)^2``, ``sigma_k`` from its own residuals, ``floor`` (:data:`BLOCK_DT_FLOOR_MS`,
+10 ms) what a constant offset's blocks scatter beyond it (P1/P2 lockstep records, RTK noise: 0 to 10.9 ms; the
+residuals' frame-to-frame correlation) and ``rel`` (:data:`BLOCK_DT_REL`, 10 %) the first-order model's error at a
+large offset, and the pool fails on either of two chi-square tests at :data:`CONSISTENT_TAIL`
+(1e-4): the blocks' scatter about the pooled ``dt_hat`` on ``n - 1`` degrees of freedom (a step), and the older
+blocks' mean against the newer ones' at the split where they differ most, on one degree, the tail shared among the
+``n - 1`` splits (a drift, whose blocks each differ from the next by less than the scatter test sees).  Of every run
+of consecutive blocks of a constant offset, the worst reached 0.59 of either limit on those lockstep records (a pair
+of blocks 56 ms apart at 0 ms) and 0.57 in the tests' geometry (90 runs of 36 s, bearing noise 0.1 to 1 mrad),
+without ``rel`` (which only lowers them).  A drift is followed with a lag: a block's floor hides a drift of 7 ms/s
+between neighbours, and the last drifting blocks stay in the pool after the drift stops (2.6 to 3.1 sigmas off the
+offset, within 31 ms, 15 s after a drift to -150 ms in the tests).
+A cut pool lets go of the compensation (below): its value was of the blocks dropped; and it is not confident before
+``SIGNIFICANT_MIN_BLOCKS`` (3) blocks (nor is a pool restarted by refused blocks): in the daemon a constant -300 ms
+gave runs of blocks from -175 to -400 ms, each with a sigma of a few ms, and two of them that agreed, confident at
+-176 +- 7 ms, were compensated while the offset was -300.
 
 Significance.  Whether the offset is beyond a threshold (the warning's question) needs less than a confident
 estimate: :meth:`TimeOffsetEstimate.significantly_beyond` asks for the estimate beyond it by two sigmas, the
@@ -66,7 +88,9 @@ takes the pose at the frame's own stamp, so it estimates the whole offset, compe
 ``min_compensated_ms`` (within ``max_offset_ms``): compensating 50 ms as 46 +- 13 leaves 4 ms, not 50.  It takes a
 confident estimate again when that leaves it by more than two sigmas, or when that rests on twice the information
 of the one it holds (its variance halved: ``REFINE_VARIANCE_RATIO``), and holds its value otherwise (the offset
-belongs to the camera, not to the target: a lost track does not make it go away).  Each move makes the caller's 3-D
+belongs to the camera, not to the target: a lost track does not make it go away), until the offset moves: a pool
+cut by the consistency tests or restarted by refused blocks sets it back to 0, and the new pool starts it again once
+significant.  Each move makes the caller's 3-D
 window again (one model selection), so block noise is no reason to move; but the first value taken rests on two or
 three blocks, and held against the two-sigma test alone it could stay for the whole flight further off than the
 estimate beside it, the later sigmas shrinking as fast as the difference (docs/performance.md, "A camera clock off
@@ -80,6 +104,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.special import chdtri
 
 from onboard.core.checks import is_positive_number, require_each
 from onboard.core.errors import InputError, wrong_sizes
@@ -105,6 +130,17 @@ SIGNIFICANT_MIN_BLOCKS = 3
 REFINE_VARIANCE_RATIO = 0.5
 #: refused blocks in a row that agree on an offset of their own restart the pool from them (module docstring)
 MOVED_RUN_BLOCKS = 2
+#: beyond its sigma from its own residuals, a block's ``dt`` scatters by up to this under a constant offset (the
+#: residuals' frame-to-frame correlation, module docstring): P1/P2 lockstep records with RTK noise, 0 and 50 ms,
+#: 10 to 13 blocks each, scattered by 0 to 10.9 ms more than their residual sigmas (root-sum-square)
+BLOCK_DT_FLOOR_MS = 10.0
+#: and by this share of itself: the model is first order in ``dt``, and in the daemon with a faked autopilot the
+#: blocks of a constant -300 ms read -240 to -400 ms, each with a sigma under 1 ms (the tests' geometry: -265 on
+#: average); without it those blocks were cut from each other and the warning came one block later
+BLOCK_DT_REL = 0.1
+#: the chi-square tail beyond which the pool's blocks are a mixture of offsets, not one (module docstring,
+#: "Consistency")
+CONSISTENT_TAIL = 1e-4
 #: a frame's numbers kept for its block: bearing (3), q_ned_from_cam (4), camera position (3), velocity (3)
 ROW_SIZE = 13
 
@@ -118,6 +154,34 @@ def _unit_ned(bearing_cam: np.ndarray, q_ned_from_cam: np.ndarray) -> np.ndarray
     b = bearing_cam
     sq = np.matmul(b[:, None, :], b[:, :, None])[:, 0, 0]
     return np.matmul(rotmat_from_quat(q_ned_from_cam), (b / np.sqrt(sq)[:, None])[:, :, None])[:, :, 0]
+
+
+def _consistent(blocks) -> bool:
+    """The blocks' offsets are one offset (module docstring, "Consistency"), by two chi-square tests of
+    :data:`CONSISTENT_TAIL` over the blocks that measure it (``s_zx > 0``), each weighed by
+    ``v_k = sigma_k^2 + floor^2 + (rel dt_k)^2`` (``sigma_k^2 = s_k^2 s_zz / s_zx^2`` from the block's own
+    residuals at its own ``dt_k``, ``floor`` :data:`BLOCK_DT_FLOOR_MS`, ``rel`` :data:`BLOCK_DT_REL`):
+
+    * their scatter, ``sum((dt_k - dt_hat)^2 / v_k)`` on ``n - 1`` degrees of freedom (``dt_hat`` the pooled
+      estimate): a step of the clock;
+    * the older blocks against the newer, ``(mean_old - mean_new)^2 / (var_old + var_new)`` (means weighed by
+      ``1 / v_k``) on one degree, at the split that differs most, the tail shared among the ``n - 1`` splits: a
+      drift, whose blocks each differ from the next by less than the scatter test sees."""
+    used = [k for k in blocks if k.s_zx > 0 and k.s_zz > 0]
+    n = len(used)
+    if n < 2:
+        return True
+    dt = np.array([k.dt_s() for k in used])
+    floor_s2 = (BLOCK_DT_FLOOR_MS / MS_PER_S) ** 2
+    v = np.array([k.residual_var(k.dt_s()) * k.s_zz / k.s_zx**2 for k in used]) + floor_s2 + (BLOCK_DT_REL * dt) ** 2
+    dt_hat = sum(k.s_zy for k in used) / sum(k.s_zx for k in used)
+    if float(np.sum((dt - dt_hat) ** 2 / v)) > float(chdtri(n - 1, CONSISTENT_TAIL)):
+        return False
+    w = 1.0 / v
+    cw, cwdt = np.cumsum(w)[:-1], np.cumsum(w * dt)[:-1]  # the first m blocks, m = 1 .. n - 1
+    mean_old, mean_new = cwdt / cw, (np.sum(w * dt) - cwdt) / (np.sum(w) - cw)
+    z2 = (mean_old - mean_new) ** 2 / (1.0 / cw + 1.0 / (np.sum(w) - cw))
+    return float(np.max(z2)) <= float(chdtri(1, CONSISTENT_TAIL / (n - 1)))
 
 
 @dataclass(frozen=True)
@@ -259,6 +323,8 @@ class TimeOffsetEstimator:
         self._compensated_ms = 0.0
         #: the sigma of the estimate the compensation holds (None: none held)
         self._compensated_sigma_ms: float | None = None
+        #: the pool was cut or restarted since it last held SIGNIFICANT_MIN_BLOCKS blocks: the offset has just moved
+        self._young = False
         self.estimate = self._summarise()
 
     @property
@@ -269,6 +335,7 @@ class TimeOffsetEstimator:
         """Forget everything (the clocks changed: an autopilot reboot, a camera restart); no compensation."""
         self._blocks.clear()
         self._refused_run.clear()
+        self._young = False
         self._clear_block()
         self._compensated_ms = 0.0
         self._compensated_sigma_ms = None
@@ -344,6 +411,7 @@ class TimeOffsetEstimator:
         block = self._block_sums(t, u, q, pc, vc, r)
         if block is None:
             return
+        moved = False
         if len(self._blocks) >= 3:
             dt_s = self.estimate.estimate_ms / MS_PER_S if self.estimate.estimate_ms is not None else 0.0
             rms = [math.sqrt(k.residual_var(dt_s)) for k in self._blocks]
@@ -358,10 +426,22 @@ class TimeOffsetEstimator:
                 # did at its own; what the pool holds is of the offset before
                 self._blocks.clear()
                 self._blocks.extend(list(self._refused_run)[:-1])
+                moved = True
             self._refused_run.clear()
         self._blocks.append(block)
         while self._blocks and self._blocks[0].t_end_s < block.t_end_s - self.params.window_s:
             self._blocks.popleft()
+        # blocks that disagree beyond their own sigmas are two offsets or more (a clock that stepped, or drifts), not
+        # one: the newest consistent run is the offset now, and a value compensated from the blocks before it is of
+        # an offset that is gone (module docstring, "Consistency")
+        while len(self._blocks) > 1 and not _consistent(self._blocks):
+            self._blocks.popleft()
+            moved = True
+        if moved:
+            self._release_compensation()
+            self._young = True
+        elif len(self._blocks) >= SIGNIFICANT_MIN_BLOCKS:
+            self._young = False
         self.estimate = self._summarise()
         p = self.params
         e = self.estimate
@@ -394,6 +474,12 @@ class TimeOffsetEstimator:
             return False
         dt_s = sum(k.s_zy for k in run) / s_zx
         return all(math.sqrt(k.residual_var(dt_s)) <= limit for k in run)
+
+    def _release_compensation(self) -> None:
+        """The offset moved: what the compensation holds was estimated from blocks of the offset before (or from a
+        mixture), so the pose lookup goes back to the stamp until the new pool is significant in its own right."""
+        self._compensated_ms = 0.0
+        self._compensated_sigma_ms = None
 
     def _clear_block(self) -> None:
         self._t, self._frames, self._r = [], [], []
@@ -482,7 +568,10 @@ class TimeOffsetEstimator:
             scatter = sum(k.s_zx**2 / k.s_zz * (k.dt_s() - dt_s) ** 2 for k in used) / (len(used) - 1)
             var = max(var, scatter)
         sigma_ms = math.sqrt(var * s_zz) / s_zx * MS_PER_S
-        confident = len(blocks) >= p.min_blocks and sigma_ms <= p.confident_sigma_ms
+        # just after the offset moved, two blocks that agree may still be two of a run whose blocks do not (the
+        # model's error at a large offset): confidence waits for a third, whose scatter checks the sigma
+        min_blocks = max(p.min_blocks, SIGNIFICANT_MIN_BLOCKS) if self._young else p.min_blocks
+        confident = len(blocks) >= min_blocks and sigma_ms <= p.confident_sigma_ms
         return TimeOffsetEstimate(
             estimate_ms=dt_s * MS_PER_S,
             sigma_ms=sigma_ms,

@@ -311,3 +311,94 @@ def test_two_blocks_of_a_jumping_centroid_in_a_row_do_not_restart_the_pool():
         est.add(t, b, *args[2:], **kwargs)
     assert est.estimate.refused_blocks == 2
     assert est.estimate.estimate_ms == pytest.approx(50.0, abs=15.0)
+
+
+def _feed_offset(est: TimeOffsetEstimator, offset_of_t, duration_s: float, seed: int, noise_rad: float = 0.5e-3):
+    """:func:`_feed` with the offset a function of the capture time (array of s -> s).  Returns, after each block
+    closed, the capture time of the frame that closed it, the true offset at the closed block's centre (ms) and the
+    estimate."""
+    rng = np.random.default_rng(seed)
+    t_cap = np.arange(0.0, duration_s, 1.0 / FRAME_RATE_HZ)
+    t_stamp = t_cap + offset_of_t(t_cap)
+    p_cap, _ = _observer(t_cap)
+    d = _target(t_cap) - p_cap
+    R_cap = rotmat_from_quat(_attitude(t_cap))
+    b_cam = np.einsum("nji,nj->ni", R_cap, d / np.linalg.norm(d, axis=1, keepdims=True))
+    b_cam += noise_rad * rng.standard_normal(b_cam.shape)
+    q_rep = quat_multiply(quat_from_rotvec(noise_rad * rng.standard_normal((t_cap.size, 3))), _attitude(t_stamp))
+    p_rep, v_rep = _observer(t_stamp)
+    range_m = np.linalg.norm(d, axis=1)
+    closes = []
+    for k in range(t_cap.size):
+        before = est.estimate
+        e = est.add(t_stamp[k], b_cam[k], q_rep[k], p_rep[k], v_rep[k], range_m[k], track_id=1)
+        if e is not before:
+            centre_s = t_cap[k] - est.params.block_s / 2
+            closes.append((t_cap[k], 1e3 * float(offset_of_t(np.array([centre_s]))[0]), e))
+    return closes
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_a_step_back_from_an_offset_never_compensates_the_mixture(seed):
+    """-300 ms for 15 s, then 0: the blocks after the step are no outliers at the bearings' noise, and a pool of
+    both read -224 +- 58 ms, within max_offset_ms, and compensated 224 ms that no longer existed.  The blocks
+    disagree far beyond their sigmas: the newest consistent run is the offset now, 0 within a few ms two blocks on,
+    and nothing is ever compensated (-300 is beyond max_offset_ms, 0 within min_compensated_ms)."""
+    step_s = 15.0
+    est = TimeOffsetEstimator()
+    closes = _feed_offset(est, lambda t: np.where(t < step_s, -0.3, 0.0), 33.0, seed)
+    assert all(e.compensated_ms == 0.0 for _, _, e in closes), [e.compensated_ms for _, _, e in closes]
+    after = [e for t, _, e in closes if t - est.params.block_s >= step_s]  # blocks that began after the step
+    assert len(after) >= 4
+    for e in after[1:]:  # two blocks on: 0 within a few ms (confident from the third, module docstring)
+        assert e.sigma_ms <= est.params.confident_sigma_ms and abs(e.estimate_ms) <= 3.0 * e.sigma_ms, e
+    assert all(e.confident for e in after[2:])
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3, 4])
+def test_a_drifting_clock_is_warned_while_it_drifts_and_followed(seed):
+    """0 to -150 ms over 21 s (7 ms/s), then held: most drifting blocks pass the outlier test, and a pool of 60 s
+    mixed the offsets of the whole drift: significant only 3 s after the drift ended, -64 +- 16 ms 15 s after it
+    (truth -150), the compensation held at about -53 (about 100 ms off).  Cut to its newest consistent run, the pool
+    is significant while the clock drifts and ends within 35 ms of the offset (what a block's own ``dt`` may scatter
+    by, BLOCK_DT_FLOOR_MS and BLOCK_DT_REL, keeps the last drifting blocks in: 2.6 to 3.1 sigmas short of it)."""
+    start_s, drift_s, offset_s = 12.0, 21.0, -0.15
+    est = TimeOffsetEstimator()
+    closes = _feed_offset(est, lambda t: offset_s * np.clip((t - start_s) / drift_s, 0.0, 1.0), 48.0, seed)
+    warned = [t for t, _, e in closes if e.significantly_beyond(20.0)]
+    assert warned and warned[0] < start_s + drift_s, warned
+    _, truth_ms, e = closes[-1]
+    assert e.estimate_ms == pytest.approx(truth_ms, abs=35.0), e
+
+
+@pytest.mark.parametrize("noise_rad", [0.5e-3, 1e-3])
+@pytest.mark.parametrize("offset_ms", [50.0, -30.0, 0.0])
+def test_a_constant_offset_is_never_split(offset_ms, noise_rad):
+    """The consistency tests (module docstring, "Consistency") never cut the pool of a constant offset: every block
+    closed is pooled, 36 s of blocks, six seeds."""
+    for seed in range(1, 7):
+        closes = _feed_offset(TimeOffsetEstimator(), lambda t: np.full_like(t, offset_ms / 1e3), 36.0, seed, noise_rad)
+        assert [e.blocks for _, _, e in closes] == list(range(1, len(closes) + 1)), seed
+
+
+def test_a_compensation_is_let_go_when_the_offset_moves_beyond_what_can_be_compensated():
+    """100 ms compensated, then the clock steps to -300 ms (beyond max_offset_ms): the value held was of the offset
+    before, and keeping it would compensate 100 ms the wrong way for the rest of the flight."""
+    est = TimeOffsetEstimator()
+    closes = _feed_offset(est, lambda t: np.where(t < 15.0, 0.1, -0.3), 33.0, seed=1)
+    assert any(e.compensated_ms == pytest.approx(100.0, abs=20.0) for t, _, e in closes if t < 15.0)
+    e = closes[-1][2]
+    assert e.estimate_ms == pytest.approx(-300.0, abs=max(3 * e.sigma_ms, 10.0)), e
+    assert est.compensated_ms == 0.0
+
+
+def test_a_pool_cut_by_a_step_is_compensated_from_its_third_block():
+    """0 then 100 ms: the blocks after the step are cut from the ones before.  Two blocks that agree right after a
+    move may be two of a run that does not (the model's error at a large offset: in the daemon two such blocks were
+    compensated as -176 ms while the offset was -300), so the new pool is confident, and compensated, from its third
+    block, whose scatter checks the sigma."""
+    est = TimeOffsetEstimator()
+    closes = _feed_offset(est, lambda t: np.where(t < 15.0, 0.0, 0.1), 33.0, seed=1)
+    started = [e for _, _, e in closes if e.compensated_ms]
+    assert started and started[0].blocks == SIGNIFICANT_MIN_BLOCKS, started[:1]
+    assert all(not e.confident for t, _, e in closes if 15.0 < t - est.params.block_s and e.blocks < 3)
