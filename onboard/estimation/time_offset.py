@@ -71,10 +71,10 @@ of blocks 56 ms apart at 0 ms) and 0.57 in the tests' geometry (90 runs of 36 s,
 without ``rel`` (which only lowers them).  A drift is followed with a lag: a block's floor hides a drift of 7 ms/s
 between neighbours, and the last drifting blocks stay in the pool after the drift stops (2.6 to 3.1 sigmas off the
 offset, within 31 ms, 15 s after a drift to -150 ms in the tests).
-A cut pool lets go of the compensation (below): its value was of the blocks dropped; and it is not confident before
-``SIGNIFICANT_MIN_BLOCKS`` (3) blocks (nor is a pool restarted by refused blocks): in the daemon a constant -300 ms
-gave runs of blocks from -175 to -400 ms, each with a sigma of a few ms, and two of them that agreed, confident at
--176 +- 7 ms, were compensated while the offset was -300.
+A cut pool lets go of the compensation (below): its value was of the blocks dropped; and it takes none before
+``SIGNIFICANT_MIN_BLOCKS`` (3) blocks (nor does a pool restarted by refused blocks): in the daemon a constant -300 ms
+gave runs of blocks from -175 to -418 ms, each with a sigma of a few ms, and two of them that agreed, confident at
+-176 +- 7 ms, were compensated while the offset was -300.  The warning does not wait: the offset is there either way.
 
 Significance.  Whether the offset is beyond a threshold (the warning's question) needs less than a confident
 estimate: :meth:`TimeOffsetEstimate.significantly_beyond` asks for the estimate beyond it by two sigmas, the
@@ -445,7 +445,11 @@ class TimeOffsetEstimator:
         self.estimate = self._summarise()
         p = self.params
         e = self.estimate
-        if p.compensate and e.estimate_ms is not None and abs(e.estimate_ms) <= p.max_offset_ms:
+        # just after the offset moved, two blocks that agree may still be two of a run whose blocks do not (the
+        # model's error at a large offset): the compensation waits for a third, whose scatter checks the sigma (the
+        # warning does not: the offset is there either way)
+        settled = not self._young or len(self._blocks) >= SIGNIFICANT_MIN_BLOCKS
+        if p.compensate and settled and e.estimate_ms is not None and abs(e.estimate_ms) <= p.max_offset_ms:
             # started by the same test as the warning (an offset of 50 ms compensated as 46 +- 13 leaves 4, not
             # 50); moved by a confident estimate that left it by two sigmas or rests on twice its information (each
             # move makes the caller's 3-D window again, and a block's noise is no reason to: module docstring)
@@ -568,10 +572,7 @@ class TimeOffsetEstimator:
             scatter = sum(k.s_zx**2 / k.s_zz * (k.dt_s() - dt_s) ** 2 for k in used) / (len(used) - 1)
             var = max(var, scatter)
         sigma_ms = math.sqrt(var * s_zz) / s_zx * MS_PER_S
-        # just after the offset moved, two blocks that agree may still be two of a run whose blocks do not (the
-        # model's error at a large offset): confidence waits for a third, whose scatter checks the sigma
-        min_blocks = max(p.min_blocks, SIGNIFICANT_MIN_BLOCKS) if self._young else p.min_blocks
-        confident = len(blocks) >= min_blocks and sigma_ms <= p.confident_sigma_ms
+        confident = len(blocks) >= p.min_blocks and sigma_ms <= p.confident_sigma_ms
         return TimeOffsetEstimate(
             estimate_ms=dt_s * MS_PER_S,
             sigma_ms=sigma_ms,

@@ -350,9 +350,8 @@ def test_a_step_back_from_an_offset_never_compensates_the_mixture(seed):
     assert all(e.compensated_ms == 0.0 for _, _, e in closes), [e.compensated_ms for _, _, e in closes]
     after = [e for t, _, e in closes if t - est.params.block_s >= step_s]  # blocks that began after the step
     assert len(after) >= 4
-    for e in after[1:]:  # two blocks on: 0 within a few ms (confident from the third, module docstring)
-        assert e.sigma_ms <= est.params.confident_sigma_ms and abs(e.estimate_ms) <= 3.0 * e.sigma_ms, e
-    assert all(e.confident for e in after[2:])
+    for e in after[1:]:  # two blocks on: 0 within a few ms
+        assert e.confident and abs(e.estimate_ms) <= 3.0 * e.sigma_ms, e
 
 
 @pytest.mark.parametrize("seed", [1, 2, 3, 4])
@@ -395,10 +394,10 @@ def test_a_compensation_is_let_go_when_the_offset_moves_beyond_what_can_be_compe
 def test_a_pool_cut_by_a_step_is_compensated_from_its_third_block():
     """0 then 100 ms: the blocks after the step are cut from the ones before.  Two blocks that agree right after a
     move may be two of a run that does not (the model's error at a large offset: in the daemon two such blocks were
-    compensated as -176 ms while the offset was -300), so the new pool is confident, and compensated, from its third
-    block, whose scatter checks the sigma."""
+    compensated as -176 ms while the offset was -300), so the new pool is compensated from its third block, whose
+    scatter checks the sigma; the warning does not wait (the offset is there either way)."""
     est = TimeOffsetEstimator()
     closes = _feed_offset(est, lambda t: np.where(t < 15.0, 0.0, 0.1), 33.0, seed=1)
     started = [e for _, _, e in closes if e.compensated_ms]
     assert started and started[0].blocks == SIGNIFICANT_MIN_BLOCKS, started[:1]
-    assert all(not e.confident for t, _, e in closes if 15.0 < t - est.params.block_s and e.blocks < 3)
+    assert any(e.significantly_beyond(20.0) for _, _, e in closes if e.blocks == 2 and not e.compensated_ms)
