@@ -195,16 +195,22 @@ def test_new_track_closes_the_block_and_reset_forgets():
     assert est.estimate.state == "unknown" and est.compensated_ms == 0.0 and est.estimate.blocks == 0
 
 
+def _fed_with_jitter(duration_s: float, jitter_from_s: float, jitter_to_s: float) -> TimeOffsetEstimator:
+    """An estimator fed 50 ms of offset for ``duration_s``, its bearings jittered by 20 mrad (tens of pixels: a
+    centroid jumping between two objects) between the two times."""
+    est = TimeOffsetEstimator()
+    rng = np.random.default_rng(7)
+    for args, kwargs in _recorded_calls(0.05, duration_s, seed=6):
+        t, b = args[0], np.array(args[1])
+        if jitter_from_s < t < jitter_to_s:
+            b = b + 0.02 * rng.standard_normal(3)
+        est.add(t, b, *args[2:], **kwargs)
+    return est
+
+
 def test_outlier_block_is_refused():
     """A block whose residual is far above the others' (a centroid jumping between two objects) is not pooled."""
-    est = TimeOffsetEstimator()
-    rows = _recorded_calls(0.05, 16.0, seed=6)
-    rng = np.random.default_rng(7)
-    for args, kwargs in rows:
-        t, b = args[0], np.array(args[1])
-        if 12.2 < t < 14.8:
-            b = b + 0.02 * rng.standard_normal(3)  # 20 mrad of jitter: tens of pixels
-        est.add(t, b, *args[2:], **kwargs)
+    est = _fed_with_jitter(16.0, 12.2, 14.8)
     assert est.estimate.refused_blocks == 1
     assert est.estimate.estimate_ms == pytest.approx(50.0, abs=15.0)
 
@@ -301,14 +307,7 @@ def test_a_clock_that_stepped_is_followed_once_two_refused_blocks_agree_on_the_n
 
 def test_two_blocks_of_a_jumping_centroid_in_a_row_do_not_restart_the_pool():
     """Refused blocks that fit no offset (20 mrad of jitter: tens of pixels) are outliers, not a clock that moved."""
-    est = TimeOffsetEstimator()
-    rows = _recorded_calls(0.05, 22.0, seed=6)
-    rng = np.random.default_rng(7)
-    for args, kwargs in rows:
-        t, b = args[0], np.array(args[1])
-        if 12.2 < t < 17.8:
-            b = b + 0.02 * rng.standard_normal(3)
-        est.add(t, b, *args[2:], **kwargs)
+    est = _fed_with_jitter(22.0, 12.2, 17.8)
     assert est.estimate.refused_blocks == 2
     assert est.estimate.estimate_ms == pytest.approx(50.0, abs=15.0)
 
