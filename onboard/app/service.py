@@ -232,8 +232,8 @@ class OnboardService:
         self.status_count = 0
         self._warnings_published = 0  # the watchdog's change count at the last status
         self._withheld_at = -1  # the watchdog's change count when the pipeline's withheld_because was set
-        self._offset_warned = False  # camera_time_offset was active then
-        self._offset_withholds = False  # ... and withheld the geometry, its offset not compensated
+        self._warned_codes: tuple[str, ...] = ()  # the watchdog's warnings at that change count
+        self._offset_withholds = False  # camera_time_offset withholds the geometry, its offset not compensated
         self.watchdog = Watchdog(
             started_s=self._started_s,
             frame_key=frame_key(config.vehicle),
@@ -503,21 +503,19 @@ class OnboardService:
         # fail-safe: while the configured camera disagrees with the vehicle, no direction or position goes out
         # (looked up again when the watchdog's conditions changed: its change count is read before them)
         changes = self.watchdog.changes
+        moved = changes != self._withheld_at
+        if moved:
+            self._withheld_at = changes
+            self._warned_codes = tuple(w.code for w in self.watchdog.active)
         # a camera clock offset withholds while its warning holds and it is not compensated, which moves with the
-        # estimate (a block every 3 s), not with the warning: checked each frame, the warnings read when either moved
-        offset_withholds = self._offset_warned and clock_offset_withholds(
+        # estimate (a block every 3 s), not with the warning: checked each frame
+        offset_withholds = CLOCK_OFFSET in self._warned_codes and clock_offset_withholds(
             self.pipeline.time_offset_estimate, self.config.time_offset.warn_threshold_ms, self._offset_withholds
         )
-        if changes != self._withheld_at or offset_withholds != self._offset_withholds:
-            self._withheld_at = changes
-            codes = tuple(w.code for w in self.watchdog.active)
-            self._offset_warned = CLOCK_OFFSET in codes
-            offset_withholds = self._offset_warned and clock_offset_withholds(
-                self.pipeline.time_offset_estimate, self.config.time_offset.warn_threshold_ms, self._offset_withholds
-            )
+        if moved or offset_withholds != self._offset_withholds:
             self._offset_withholds = offset_withholds
             self.pipeline.withheld_because = tuple(
-                c for c in codes if c in MISMATCH_WARNINGS or (c == CLOCK_OFFSET and offset_withholds)
+                c for c in self._warned_codes if c in MISMATCH_WARNINGS or (c == CLOCK_OFFSET and offset_withholds)
             )
         withheld = self.pipeline.withheld_because
         if not self.mount.gimballed and "gimbal_mismatch" not in withheld and self.link is not None:
