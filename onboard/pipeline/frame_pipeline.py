@@ -152,14 +152,8 @@ TRACKER_REFUSALS = ("tracker_output_invalid", "tracker_error")
 #: ``frame_*`` counter keys of events on frames that were taken (module docstring), not refusals: the status's
 #: ``frames.rejected`` sums every other ``frame_*`` key
 ACCEPTED_FRAME_EVENTS = frozenset(
-    {
-        "frame_time_reset",
-        "frame_sequence_reset",
-        "frame_sequence_repeated",
-        "frame_stream_restart",
-        "frame_encoding_changed",
-        "frame_zoom_invalid",
-    }
+    ("frame_time_reset", "frame_sequence_reset", "frame_sequence_repeated", "frame_stream_restart")
+    + ("frame_encoding_changed", "frame_zoom_invalid")
 )
 
 
