@@ -530,7 +530,7 @@ class OnboardService:
             self.watchdog.frame_size(now_s, frame.width_px, frame.height_px)
             self.watchdog.zoom(now_s, self.pipeline.last_zoom, self.pipeline.zoom_withheld)
             self.watchdog.residual(now_s, track.residual_rms_norm)
-            self.watchdog.navigation(now_s, self.pipeline.last_position_age_s)
+            self.watchdog.navigation(now_s, self.pipeline.last_position_age_s, rejected=self.counter.counts)
             self.watchdog.camera_clock(now_s, self.pipeline.clock_apart_s)
             newest_us = self.pose.newest_rotation_time_boot_us()
             self.watchdog.frame_pose(
@@ -728,6 +728,7 @@ class OnboardService:
             mavlink_rx=rx,
             mavlink_refused=refused,
             mavlink_open_error=open_error,
+            rejected=self.counter.counts,
             rotation=(self.pose.newest_rotation_time_boot_us(), self.mount.gimballed),
         )
         self.watchdog.components(

@@ -61,7 +61,9 @@ seconds, its own clock) and what it saw; tests feed it a fake clock.  Each condi
     gimballed mount) have brought no new sample for ``ROTATION_SILENT_S`` (2 s) while MAVLink messages and IR frames
     arrive (each within ``INPUTS_LIVE_S`` of the last; the silence counts from when both do): no frame gets a pose (each counted ``pose_attitude_*``), so no line of sight and no
     3-D.  An autopilot that heartbeats but stopped streaming (a stream rate reset, a refused SET_MESSAGE_INTERVAL)
-    showed only in the counters.  Cleared by the next new sample.
+    showed only in the counters.  When the pose buffer refused the stream's samples meanwhile (the status's
+    ``rejected``: ``attitude_not_unit``, ``attitude_time_outlier`` ...), the message says they arrive and are refused,
+    naming the counts, instead of pointing at the message rates.  Cleared by the next new sample.
 
 ``frames_without_pose``
     Every frame for ``FRAMES_WITHOUT_POSE_S`` (2 s) got no pose while the camera's rotation streams arrive (their
@@ -93,7 +95,9 @@ seconds, its own clock) and what it saw; tests feed it a fake clock.  Each condi
     The position stream (GLOBAL_POSITION_INT #33) has been silent for more than ``nav_gap_s``
     (0.3 s: seven missed samples at 25 Hz) at a frame's capture time while attitude and frames go on:
     the position is dead-reckoned with a growing sigma (``pose.dead_reckoning_max_s``) and the 3-D
-    estimate coasts.  Checked on every processed frame, cleared by the first frame with fresh position.
+    estimate coasts.  When the pose buffer refused #33's samples meanwhile (``position_alt_out_of_range``,
+    ``position_jump`` ...), the message says they arrive and are refused, naming the counts, instead of pointing at
+    the GNSS.  Checked on every processed frame, cleared by the first frame with fresh position.
 
 ``gnss_degraded``
     The autopilot's GNSS receiver has reported no 3-D fix (GPS_RAW_INT #24 ``fix_type`` below 3D_FIX: no GPS,
@@ -197,7 +201,22 @@ FRAMES_WITHOUT_POSE_S = 2.0
 #: the warnings that name why frames get no pose themselves: frames_without_pose would only repeat them
 POSE_LOSS_NAMED = ("no_mavlink", "no_attitude", "camera_clock_apart", "gimbal_mismatch", "gnss_dropout")
 
+#: the pose buffer's reasons that keep the sample they count (not a refusal), as ``<stream>_<reason>``
+_SAMPLE_KEPT = frozenset({"resumed", "time_step", "reset", "rate_invalid", "velocity_invalid", "reference_changed"})
+
 _log = logging.getLogger(__name__)
+
+
+def _refused_since(counts: dict[str, int], since: dict[str, int], streams: tuple[str, ...]) -> str:
+    """The pose buffer's refusals of ``streams``' samples (reasons ``<stream>_<why>``) counted in ``counts`` beyond
+    ``since`` (an earlier copy), as "attitude_not_unit 387, ..."; "" when none."""
+    grown = []
+    for reason, n in sorted(counts.items()):
+        stream, _, why = reason.partition("_")
+        if stream in streams and why not in _SAMPLE_KEPT and n > since.get(reason, 0):
+            grown.append(f"{reason} {n - since.get(reason, 0)}")
+    return ", ".join(grown)
+
 
 #: the inputs the timeouts watch: code -> (what did not come, where it was awaited and what to check)
 _SILENT_INPUT = {
@@ -275,6 +294,9 @@ class Watchdog:
         self._rotation_newest_us: int | None = None
         self._rotation_since_s = float(started_s)
         self._rotation_moved_s = -math.inf  # when the rotation streams' newest sample last moved (frames_without_pose)
+        self._rejected: dict[str, int] = {}  # the status's rejected counts, as of the last step
+        self._rotation_rejected: dict[str, int] = {}  # ... when the rotation streams' newest sample last moved
+        self._position_rejected: dict[str, int] = {}  # ... when a frame last had a fresh position
         self._poseless_since_s: float | None = None  # the first frame of the run without a pose
         self._poseless_frames = 0
         self._frames_seen = 0
@@ -311,13 +333,18 @@ class Watchdog:
         mavlink_open_error: str | None = None,
         rotation: tuple[int | None, bool] | None = None,
         mavlink_refused: int | None = None,
+        rejected: dict[str, int] | None = None,
     ) -> None:
         """Update with the running counts of frames received and MAVLink messages, then check the timeouts.
         ``mavlink_open_error``: why the MAVLink connection could not be opened (None: it is open), which the
         ``no_mavlink`` warning then names instead of the far end.  ``rotation``: (the newest time the camera's
         rotation streams cover, the pose buffer's, None while there is none; whether the mount is gimballed), for
         ``no_attitude`` (None: not watched).  ``mavlink_refused``: the running count of MAVLink messages signing
-        refused (not in ``mavlink_rx``): while they grow and nothing is taken, ``no_mavlink`` says the keys differ."""
+        refused (not in ``mavlink_rx``): while they grow and nothing is taken, ``no_mavlink`` says the keys differ.
+        ``rejected``: the running counts of rejected input by reason (the status's), for ``no_attitude`` and
+        ``gnss_dropout`` to tell a stream that stopped from one whose samples are refused."""
+        if rejected is not None:
+            self._rejected = dict(rejected)
         # the attitude's silence counts from when frames and MAVLink both arrive again, not through their own
         if now_s - self._last_frame_s >= INPUTS_LIVE_S or now_s - self._last_mavlink_s >= INPUTS_LIVE_S:
             self._rotation_since_s = max(self._rotation_since_s, float(now_s))
@@ -410,6 +437,7 @@ class Watchdog:
         if newest_us is not None and newest_us != self._rotation_newest_us:
             self._rotation_newest_us = newest_us
             self._rotation_since_s = self._rotation_moved_s = float(now_s)
+            self._rotation_rejected = self._rejected
             self._clear("no_attitude")
             return
         silent_s = now_s - self._rotation_since_s
@@ -420,6 +448,16 @@ class Watchdog:
             if gimballed
             else ("ATTITUDE_QUATERNION (#31)")
         )
+        refused = _refused_since(self._rejected, self._rotation_rejected, ("attitude", "gimbal"))
+        if refused:
+            # the messages arrive: the rates are not the matter, what the autopilot puts in them is
+            self._raise(
+                "no_attitude",
+                f"no {streams} sample accepted for {silent_s:.0f} s: they arrive but the pose buffer refuses them "
+                f"(rejected: {refused}; the log says why): no frame gets a pose, so no line of sight and no 3-D; "
+                "check what the autopilot sends (its quaternion's norm, its time_boot_ms)",
+            )
+            return
         self._raise(
             "no_attitude",
             f"no new {streams} for {silent_s:.0f} s ({'since the last one' if newest_us is not None else 'since start'})"
@@ -567,14 +605,36 @@ class Watchdog:
             f"{bitrate_bps / 1e6:.2f} Mbit/s); set video.fps to the camera's rate",
         )
 
-    def navigation(self, now_s: float, position_age_s: float | None, nav_gap_s: float = NAV_GAP_S) -> None:
-        """One frame's age of the newest position sample at its capture time (None: no pose, ignored)."""
+    def navigation(
+        self,
+        now_s: float,
+        position_age_s: float | None,
+        nav_gap_s: float = NAV_GAP_S,
+        rejected: dict[str, int] | None = None,
+    ) -> None:
+        """One frame's age of the newest position sample at its capture time (None: no pose, ignored); ``rejected``:
+        the running counts of rejected input by reason, as :meth:`step` takes them (the warning is raised within
+        a frame of the gap, before the next step would bring them)."""
+        if rejected is not None:
+            self._rejected = dict(rejected)
         if position_age_s is None:
             return
         if position_age_s <= nav_gap_s:
+            self._position_rejected = self._rejected
             self._clear("gnss_dropout")
             return
         age = "over the dead-reckoning limit" if math.isinf(position_age_s) else f"for {position_age_s:.1f} s"
+        refused = _refused_since(self._rejected, self._position_rejected, ("position",))
+        if refused:
+            # #33 arrives: the GNSS is not the matter, what the autopilot puts in the messages is
+            self._raise(
+                "gnss_dropout",
+                f"no GLOBAL_POSITION_INT (#33) sample accepted {age}: they arrive but the pose buffer refuses them "
+                f"(rejected: {refused}; the log says why) while attitude and frames go on: the position is "
+                "dead-reckoned with a growing sigma (pose.dead_reckoning_max_s) and 3-D positions coast; check what "
+                "the autopilot sends in #33 (its alt in mm, lat/lon in degE7)",
+            )
+            return
         self._raise(
             "gnss_dropout",
             f"no GLOBAL_POSITION_INT (#33) {age} while attitude and frames go on: the position is dead-reckoned "

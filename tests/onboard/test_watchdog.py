@@ -486,3 +486,35 @@ def test_frames_before_the_telemetry_starts_do_not_count_towards_frames_without_
     assert msg.startswith("frames_without_pose: no pose for the last 61 frames (2 s)"), (
         msg
     )  # from the telemetry's start
+
+
+def test_no_attitude_says_the_samples_arrive_refused_when_the_pose_buffer_rejects_them(caplog):
+    """#31 with a quaternion of norm 1.02 arrives at 100 Hz and every one is refused (attitude_not_unit): the
+    warning said 'check the autopilot's message rates', the one thing that was fine."""
+    wd = _wd()
+    with caplog.at_level(logging.INFO, logger="onboard.app.watchdog"):
+        wd.step(100.5, frames_in=1, mavlink_rx=1, rotation=(500_000, False), rejected={"pose_extrapolated": 7})
+        for k in range(2, 7):  # 1.0 .. 3.0 s: refused, 50 a step; a normal count grows alongside
+            rejected = {"pose_extrapolated": 7 + k, "attitude_not_unit": 50 * (k - 1), "attitude_resumed": 1}
+            wd.step(100.0 + 0.5 * k, frames_in=k, mavlink_rx=k, rotation=(500_000, False), rejected=rejected)
+    msgs = _warnings(caplog)
+    assert len(msgs) == 1 and msgs[0].startswith("no_attitude"), msgs
+    assert "refuses" in msgs[0] and "attitude_not_unit 200" in msgs[0], msgs[0]
+    assert "pose_extrapolated" not in msgs[0] and "attitude_resumed" not in msgs[0] and "rates" not in msgs[0]
+
+
+def test_gnss_dropout_says_the_samples_arrive_refused_when_the_pose_buffer_rejects_them(caplog):
+    """#33 with its altitude in m where mm go (x1000: 70 km) is refused (position_alt_out_of_range): the warning said
+    'check the GNSS', which was fine; refusals before the last fresh position are not named."""
+    wd = _wd()
+    with caplog.at_level(logging.INFO, logger="onboard.app.watchdog"):
+        wd.navigation(101.0, 0.02, rejected={"position_jump": 1})
+        wd.navigation(101.4, 0.35, rejected={"position_jump": 1, "position_alt_out_of_range": 8})
+        wd.navigation(101.5, 0.45, rejected={"position_jump": 1, "position_alt_out_of_range": 11})
+    msgs = _warnings(caplog)
+    assert len(msgs) == 1 and msgs[0].startswith("gnss_dropout"), msgs
+    assert "refuses" in msgs[0] and "position_alt_out_of_range 8" in msgs[0] and "position_jump" not in msgs[0]
+    assert "position_alt_out_of_range 11" in wd.active[0].message
+    wd.navigation(102.0, 0.02, rejected={"position_jump": 1, "position_alt_out_of_range": 11})
+    wd.navigation(103.0, 0.5, rejected={"position_jump": 1, "position_alt_out_of_range": 11})  # a silent stream
+    assert "refuses" not in wd.active[0].message and "check the GNSS" in wd.active[0].message
