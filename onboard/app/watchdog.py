@@ -296,7 +296,8 @@ class Watchdog:
         self._rotation_moved_s = -math.inf  # when the rotation streams' newest sample last moved (frames_without_pose)
         self._rejected: dict[str, int] = {}  # the status's rejected counts, as of the last step
         self._rotation_rejected: dict[str, int] = {}  # ... when the rotation streams' newest sample last moved
-        self._position_rejected: dict[str, int] = {}  # ... when a frame last had a fresh position
+        self._position_rejected: dict[str, int] = {}  # ... when a frame last had a newer position sample
+        self._position_age_s = math.inf  # the last frame's position age (navigation)
         self._poseless_since_s: float | None = None  # the first frame of the run without a pose
         self._poseless_frames = 0
         self._frames_seen = 0
@@ -619,8 +620,12 @@ class Watchdog:
             self._rejected = dict(rejected)
         if position_age_s is None:
             return
-        if position_age_s <= nav_gap_s:
+        if position_age_s < self._position_age_s:
+            # a newer position sample than the last frame's: refusals count from here, not from the last frame within
+            # nav_gap_s (that put 1 of the 0.3 s's 7 refusals in the message)
             self._position_rejected = self._rejected
+        self._position_age_s = position_age_s
+        if position_age_s <= nav_gap_s:
             self._clear("gnss_dropout")
             return
         age = "over the dead-reckoning limit" if math.isinf(position_age_s) else f"for {position_age_s:.1f} s"

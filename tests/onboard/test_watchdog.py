@@ -509,6 +509,7 @@ def test_gnss_dropout_says_the_samples_arrive_refused_when_the_pose_buffer_rejec
     wd = _wd()
     with caplog.at_level(logging.INFO, logger="onboard.app.watchdog"):
         wd.navigation(101.0, 0.02, rejected={"position_jump": 1})
+        wd.navigation(101.2, 0.22, rejected={"position_jump": 1, "position_alt_out_of_range": 5})  # no new sample
         wd.navigation(101.4, 0.35, rejected={"position_jump": 1, "position_alt_out_of_range": 8})
         wd.navigation(101.5, 0.45, rejected={"position_jump": 1, "position_alt_out_of_range": 11})
     msgs = _warnings(caplog)
