@@ -731,6 +731,7 @@ class OnboardService:
             rejected=self.counter.counts,
             rotation=(self.pose.newest_rotation_time_boot_us(), self.mount.gimballed),
         )
+        self.watchdog.autopilot_reboots(now, self.pose.reboots)
         self.watchdog.components(
             now,
             estimator_restarts=int(getattr(self.estimator, "restarts", 0)),

@@ -81,6 +81,13 @@ seconds, its own clock) and what it saw; tests feed it a fake clock.  Each condi
     ``ESTIMATOR_RESTART_CLEAR_S`` (30 s) after the last; the message counts them.  The status's ``rejected`` says
     which (``estimator_restart``, ``estimator_hung``).
 
+``autopilot_rebooted``
+    The autopilot's boot clock went back (``time_boot_ms``, confirmed by consecutive samples: the pose buffer's
+    ``reboot``): an autopilot that restarted in flight, or a simulator started again.  The pose buffers and the 3-D
+    estimate start again, and the streams are asked again.  Counted and logged before, never in
+    the status.  Raised at each reboot, cleared ``AUTOPILOT_REBOOT_CLEAR_S`` (30 s) after the last; the message counts
+    them.
+
 ``record_stopped``, ``record_file_lost``
     The flight recording stopped (``record.stopped``: free space under ``record.min_free_mb``, a write the disk
     refused; the flight goes on, later messages dropped), or a recording file was deleted or replaced while it was
@@ -192,6 +199,7 @@ FRAME_SOURCES_CLEAR_S = 5.0
 VIDEO_RATE_TOLERANCE = 0.2
 ROTATION_SILENT_S = 2.0
 ESTIMATOR_RESTART_CLEAR_S = 30.0
+AUTOPILOT_REBOOT_CLEAR_S = 30.0
 #: a main-loop turn this much later than the previous one is a stall of the whole process, named as overload's cause
 #: (the loop turns at least every 50 ms while it runs; a second is twenty times that)
 STALL_NAMED_S = 1.0
@@ -291,6 +299,8 @@ class Watchdog:
         self._last_mavlink_s = float(started_s)
         self._estimator_restarts = 0
         self._estimator_restart_s = -math.inf
+        self._autopilot_reboots = 0
+        self._autopilot_reboot_s = -math.inf
         self._rotation_newest_us: int | None = None
         self._rotation_since_s = float(started_s)
         self._rotation_moved_s = -math.inf  # when the rotation streams' newest sample last moved (frames_without_pose)
@@ -433,6 +443,21 @@ class Watchdog:
             and f"cannot touch the liveness file: {health_error}; a health check (python -m onboard.health, the "
             "container's HEALTHCHECK) fails and may restart this daemon; check output.health_file's folder",
         )
+
+    def autopilot_reboots(self, now_s: float, reboots: int) -> None:
+        """The pose buffer's count of autopilot reboots so far (its boot clock going back), for
+        ``autopilot_rebooted``."""
+        if reboots > self._autopilot_reboots:
+            self._autopilot_reboots = reboots
+            self._autopilot_reboot_s = float(now_s)
+            self._raise(
+                "autopilot_rebooted",
+                f"the autopilot's boot clock went back: it restarted ({reboots} since start; the log has each): the "
+                "pose and the 3-D estimate started again and its streams were asked again; "
+                "in flight, check the autopilot's power and its own log",
+            )
+        elif now_s - self._autopilot_reboot_s >= AUTOPILOT_REBOOT_CLEAR_S:
+            self._clear("autopilot_rebooted")
 
     def _rotation(self, now_s: float, newest_us: int | None, gimballed: bool) -> None:
         if newest_us is not None and newest_us != self._rotation_newest_us:

@@ -922,6 +922,20 @@ def test_a_liveness_file_that_cannot_be_touched_is_a_warning_in_the_status(tmp_p
     assert "health_file" not in [w["code"] for w in svc.status(clock())["warnings"]]
 
 
+def test_an_autopilot_reboot_reaches_the_status_warnings():
+    """The pose buffer's reboot (the attitude's boot clock back, confirmed by three samples) is in the status."""
+    svc, clock = _quiet_service()
+    for k in range(20):  # 10 s of boot time, then the clock back near its start
+        assert svc.pose.add_attitude(10_000_000 + 20_000 * k, [1.0, 0.0, 0.0, 0.0])
+    svc._watch(clock())
+    assert "autopilot_rebooted" not in [w["code"] for w in svc.status(clock())["warnings"]]
+    for k in range(3):
+        svc.pose.add_attitude(300_000 + 20_000 * k, [1.0, 0.0, 0.0, 0.0])
+    assert svc.pose.reboots == 1
+    svc._watch(clock())
+    assert "autopilot_rebooted" in [w["code"] for w in svc.status(clock())["warnings"]]
+
+
 def test_a_gimbal_under_a_fixed_mount_withholds_the_very_next_frames_direction():
     """The watchdog warns gimbal_mismatch at its 2 Hz turn; a frame processed before it must not carry a line of
     sight made without the gimbal (a newcomer's fixed-mount daemon against a gimballed simulator published two)."""

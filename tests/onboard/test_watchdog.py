@@ -301,6 +301,26 @@ def test_video_rate_warns_once_when_the_camera_is_off_video_fps_and_clears_when_
     assert len([m for m in _warnings(caplog) if m.startswith("video_rate")]) == 1
 
 
+def test_an_autopilot_reboot_is_warned_with_its_count_and_held_30_s(caplog):
+    """An autopilot that restarted in flight (its boot clock back: the pose buffer's reboot) was counted and logged,
+    never in the status, as a message-by-message telemetry audit found."""
+    wd = _wd()
+    with caplog.at_level(logging.INFO, logger="onboard.app.watchdog"):
+        wd.autopilot_reboots(100.0, 0)
+        assert wd.active == ()
+        wd.autopilot_reboots(101.0, 1)
+        assert [w.code for w in wd.active] == ["autopilot_rebooted"] and "1 since start" in wd.active[0].message
+        wd.autopilot_reboots(125.0, 1)
+        assert [w.code for w in wd.active] == ["autopilot_rebooted"]  # held 30 s after the last
+        wd.autopilot_reboots(126.0, 2)
+        assert "2 since start" in wd.active[0].message
+        wd.autopilot_reboots(155.0, 2)
+        assert [w.code for w in wd.active] == ["autopilot_rebooted"]
+        wd.autopilot_reboots(156.0, 2)
+        assert wd.active == ()
+    assert len([m for m in _warnings(caplog) if m.startswith("autopilot_rebooted")]) == 1
+
+
 def test_the_daemons_own_parts_warn_estimator_restarts_a_stopped_or_lost_recording_and_the_liveness_file(caplog):
     """A helper's failure-injection audit: a worker killed, a recording stopped on a full disk or deleted mid-flight,
     the liveness file's folder removed; each showed only in counters or the log, the status's warnings empty."""
