@@ -113,7 +113,10 @@ seconds, its own clock) and what it saw; tests feed it a fake clock.  Each condi
     so does the camera position behind every 3-D position.  Kept apart from ``gnss_dropout`` because either
     comes alone (an autopilot goes on sending #33 from its estimator without a fix; #33 can stop with a good
     fix): ``gnss_dropout`` says what the daemon does (its own dead reckoning), this one says why the position
-    is poor; with both active, both are listed.  Cleared by the first report with a 3-D fix or better.
+    is poor; with both active, both are listed.  Cleared by the first report with a 3-D fix or better.  Also raised
+    when the fix comes and goes, lost ``GNSS_FLAP_LOSSES`` (3) times within ``GNSS_FLAP_WINDOW_S`` (10 s) in runs each
+    too short for the rule above (a receiver without a fix half of each second was never warned); cleared once the
+    window holds fewer losses and the fix is there.
 
 ``camera_time_offset``
     The camera's clock is off the autopilot's: the estimate of :mod:`onboard.estimation.time_offset` is above
@@ -184,6 +187,9 @@ __all__ = ["WatchdogWarning", "Watchdog", "INPUT_TIMEOUT_S", "NAV_GAP_S", "RESID
 INPUT_TIMEOUT_S = 5.0
 NAV_GAP_S = 0.3
 GNSS_DEGRADED_S = 1.0
+#: a fix lost this many times within the window, each run shorter than GNSS_DEGRADED_S, is degraded too
+GNSS_FLAP_LOSSES = 3
+GNSS_FLAP_WINDOW_S = 10.0
 RESIDUAL_THRESHOLD = 3.0
 RESIDUAL_PERSIST_S = 5.0
 RESIDUAL_MIN_SAMPLES = 10
@@ -300,6 +306,7 @@ class Watchdog:
         self._estimator_restarts = 0
         self._estimator_restart_s = -math.inf
         self._autopilot_reboots = 0
+        self._gnss_losses: collections.deque[tuple[float, int]] = collections.deque()  # (now_s, fix losses so far)
         self._autopilot_reboot_s = -math.inf
         self._rotation_newest_us: int | None = None
         self._rotation_since_s = float(started_s)
@@ -676,10 +683,24 @@ class Watchdog:
         """The latest GPS_RAW_INT (a :class:`~onboard.core.gnss.GnssState` on the same clock; None: none yet)."""
         if state is None:
             return
-        if state.has_3d_fix:
+        losses = self._gnss_losses
+        losses.append((float(now_s), int(state.fix_losses)))
+        while len(losses) > 1 and losses[1][0] <= now_s - GNSS_FLAP_WINDOW_S:
+            losses.popleft()  # the oldest kept is the count at the window's start
+        lost = int(state.fix_losses) - losses[0][1]
+        lasted = None if state.has_3d_fix else now_s - state.degraded_since_s
+        if (lasted is None or lasted <= GNSS_DEGRADED_S) and lost >= GNSS_FLAP_LOSSES:
+            self._raise(
+                "gnss_degraded",
+                f"the GNSS receiver's 3-D fix comes and goes (GPS_RAW_INT #24: lost {lost} times in the last "
+                f"{now_s - losses[0][0]:.0f} s, each time for under {GNSS_DEGRADED_S:g} s): the autopilot's position "
+                "(#33) is dead-reckoned between them and the camera position behind every 3-D position drifts; check "
+                "the GNSS antenna, receiver and its view of the sky",
+            )
+            return
+        if lasted is None:
             self._clear("gnss_degraded")
             return
-        lasted = now_s - state.degraded_since_s
         if lasted <= GNSS_DEGRADED_S:
             return
         sats = "unknown" if state.satellites is None else str(state.satellites)

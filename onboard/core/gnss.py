@@ -26,7 +26,9 @@ FIX_3D = 3
 class GnssState:
     """The latest GPS_RAW_INT: ``fix_type`` (a key of :data:`GPS_FIX_NAMES`), ``satellites`` (None: unknown),
     ``hdop``/``vdop`` (NaN: unknown), ``h_acc_m``/``v_acc_m`` (NaN: unknown), ``received_s`` (monotonic s);
-    ``degraded_since_s``: receipt of the first report of the current run below a 3-D fix (None: 3-D now)."""
+    ``degraded_since_s``: receipt of the first report of the current run below a 3-D fix (None: 3-D now);
+    ``fix_losses``: how many times so far a report fell below a 3-D fix after one with it (a fix that comes and goes
+    in runs each shorter than the watchdog's second: ``gnss_degraded``)."""
 
     fix_type: int
     satellites: int | None
@@ -36,6 +38,7 @@ class GnssState:
     v_acc_m: float
     received_s: float
     degraded_since_s: float | None
+    fix_losses: int = 0
 
     @property
     def fix(self) -> str:
@@ -61,9 +64,12 @@ class GnssState:
         if fix_type not in GPS_FIX_NAMES:
             raise ValueError(f"fix_type {fix_type!r} is not a GPS_FIX_TYPE (0..8)")
         since = None
+        losses = 0 if prev is None else prev.fix_losses
         if fix_type < FIX_3D:  # a run of degraded reports keeps the time it began
             since = prev.degraded_since_s if prev is not None and prev.degraded_since_s is not None else now_s
-        return cls(fix_type, satellites, hdop, vdop, h_acc_m, v_acc_m, float(now_s), since)
+            if prev is not None and prev.has_3d_fix:
+                losses += 1
+        return cls(fix_type, satellites, hdop, vdop, h_acc_m, v_acc_m, float(now_s), since, losses)
 
     def summary(self, now_s: float) -> dict[str, Any]:
         """``{fix, fix_type, satellites, hdop, vdop, h_acc_m, v_acc_m, age_s, degraded_s}`` (unknown: null;

@@ -134,6 +134,42 @@ def test_gnss_degraded_after_a_second_below_3d_and_cleared_by_a_3d_fix(caplog):
     assert "dead-reckons" in warned[0] and "gnss_dropout" in warned[0]
 
 
+def test_a_fix_that_comes_and_goes_in_short_runs_is_degraded_too(caplog):
+    """GPS_RAW_INT's fix_type flapping 3 <-> 1 every second (a telemetry audit): each run without a fix under the
+    second gnss_degraded waits for, never warned.  Three losses within 10 s are; one loss (a dropout that ended) is
+    not; the warning clears once the window holds fewer and the fix is there."""
+    wd = _wd()
+    g = None
+    with caplog.at_level(logging.INFO, logger="onboard.app.watchdog"):
+        for k in range(6):  # 0.8 s with a fix, 0.7 s without, the watchdog's turn every 0.5 s
+            g = GnssState.updated(g, 1.5 * k, 3, 14)
+            wd.gnss(1.5 * k + 0.4, g)
+            g = GnssState.updated(g, 1.5 * k + 0.8, 1, 0)
+            wd.gnss(1.5 * k + 0.9, g)
+            if k < 2:
+                assert wd.active == ()
+        assert g.fix_losses == 6
+        assert [w.code for w in wd.active] == ["gnss_degraded"] and "comes and goes" in wd.active[0].message
+        g = GnssState.updated(g, 9.1, 3, 14)
+        wd.gnss(12.0, g)  # a fix, but the window still holds the losses
+        assert [w.code for w in wd.active] == ["gnss_degraded"]
+        wd.gnss(19.5, g)
+        assert wd.active == ()
+    assert len([r for r in caplog.records if r.levelno == logging.WARNING]) == 1
+
+
+def test_one_loss_of_the_fix_that_ends_clears_at_the_fix_as_before():
+    wd = _wd()
+    g = GnssState.updated(None, 0.0, 3, 14)
+    wd.gnss(0.0, g)
+    g = GnssState.updated(g, 1.0, 1, 0)
+    wd.gnss(3.0, g)  # 2 s without: degraded
+    assert [w.code for w in wd.active] == ["gnss_degraded"] and "comes and goes" not in wd.active[0].message
+    g = GnssState.updated(g, 3.2, 3, 14)
+    wd.gnss(3.5, g)
+    assert wd.active == () and g.fix_losses == 1
+
+
 def test_gnss_degraded_and_gnss_dropout_are_listed_together():
     wd = _wd()
     g = GnssState.updated(GnssState.updated(None, 0.0, 2, 4), 2.0, 2, 4)
