@@ -40,16 +40,17 @@ def pytest_collection_modifyitems(items):
     for item in items:
         if any(item.get_closest_marker(m) for m in PROCESS_MARKERS):
             item.add_marker(pytest.mark.xdist_group(PROCESS_GROUP))
-        if any(item.get_closest_marker(m) for m in (*PROCESS_MARKERS, "subprocess")):
             # first of the test's fixtures (a usefixtures mark added after collection is not read): before the
-            # module-scoped ones that start the processes
+            # module-scoped ones that start the processes.  Not for the subprocess tests: their short-lived children
+            # wait on no deadline a compile could miss, and on the other worker the warm ran beside this one's,
+            # compiling the same kernels a second time on a fresh clone (22 s of its CI run)
             item.fixturenames.insert(0, "_compiled_kernels")
 
 
 @pytest.fixture(scope="session")
 def _compiled_kernels():
     """The daemon's numba kernels and the simulator's clean-sky ones in numba's cache before a test starts
-    processes (groundsim/app/warm.py; ``integration``, ``multicore`` and ``subprocess`` tests), once per worker.  On a fresh clone nothing is cached: four daemons
+    processes (groundsim/app/warm.py; ``integration`` and ``multicore`` tests), once per worker.  On a fresh clone nothing is cached: four daemons
     started at once (tests/test_integration.py's flights) each compiled ~13 s of CPU on two cores and published
     no status within the tests' 30 s, so that module failed when run first or alone, and passed in the whole
     suite only because earlier tests had filled the cache.  Cached, this costs about a second."""
