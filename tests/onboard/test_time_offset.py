@@ -97,13 +97,9 @@ def _recorded_calls(offset_s: float, duration_s: float, seed: int) -> list[tuple
     return calls
 
 
-def _feed_blocks(est: TimeOffsetEstimator, offsets_s, seed: int, noise_rad: float):
-    """:func:`_feed` with the offset constant over each of the estimator's blocks, one block per entry of
-    ``offsets_s``; the last block closed.  Returns the estimate."""
-    rng = np.random.default_rng(seed)
-    block_s = est.params.block_s
-    t_cap = np.arange(0.0, block_s * len(offsets_s), 1.0 / FRAME_RATE_HZ)
-    t_stamp = t_cap + np.asarray(offsets_s)[np.minimum((t_cap // block_s).astype(int), len(offsets_s) - 1)]
+def _rows(t_cap, t_stamp, rng, noise_rad: float):
+    """The frames captured at ``t_cap`` and stamped ``t_stamp``: noisy bearings, the attitude and position reported
+    at the stamp (noisy attitude), the true range; as :meth:`TimeOffsetEstimator.add` takes them."""
     p_cap, _ = _observer(t_cap)
     d = _target(t_cap) - p_cap
     R_cap = rotmat_from_quat(_attitude(t_cap))
@@ -111,7 +107,17 @@ def _feed_blocks(est: TimeOffsetEstimator, offsets_s, seed: int, noise_rad: floa
     b_cam += noise_rad * rng.standard_normal(b_cam.shape)
     q_rep = quat_multiply(quat_from_rotvec(noise_rad * rng.standard_normal((t_cap.size, 3))), _attitude(t_stamp))
     p_rep, v_rep = _observer(t_stamp)
-    range_m = np.linalg.norm(d, axis=1)
+    return b_cam, q_rep, p_rep, v_rep, np.linalg.norm(d, axis=1)
+
+
+def _feed_blocks(est: TimeOffsetEstimator, offsets_s, seed: int, noise_rad: float):
+    """:func:`_feed` with the offset constant over each of the estimator's blocks, one block per entry of
+    ``offsets_s``; the last block closed.  Returns the estimate."""
+    rng = np.random.default_rng(seed)
+    block_s = est.params.block_s
+    t_cap = np.arange(0.0, block_s * len(offsets_s), 1.0 / FRAME_RATE_HZ)
+    t_stamp = t_cap + np.asarray(offsets_s)[np.minimum((t_cap // block_s).astype(int), len(offsets_s) - 1)]
+    b_cam, q_rep, p_rep, v_rep, range_m = _rows(t_cap, t_stamp, rng, noise_rad)
     for k in range(t_cap.size):
         est.add(t_stamp[k], b_cam[k], q_rep[k], p_rep[k], v_rep[k], range_m[k], track_id=1)
     est.close_block()
@@ -319,14 +325,7 @@ def _feed_offset(est: TimeOffsetEstimator, offset_of_t, duration_s: float, seed:
     rng = np.random.default_rng(seed)
     t_cap = np.arange(0.0, duration_s, 1.0 / FRAME_RATE_HZ)
     t_stamp = t_cap + offset_of_t(t_cap)
-    p_cap, _ = _observer(t_cap)
-    d = _target(t_cap) - p_cap
-    R_cap = rotmat_from_quat(_attitude(t_cap))
-    b_cam = np.einsum("nji,nj->ni", R_cap, d / np.linalg.norm(d, axis=1, keepdims=True))
-    b_cam += noise_rad * rng.standard_normal(b_cam.shape)
-    q_rep = quat_multiply(quat_from_rotvec(noise_rad * rng.standard_normal((t_cap.size, 3))), _attitude(t_stamp))
-    p_rep, v_rep = _observer(t_stamp)
-    range_m = np.linalg.norm(d, axis=1)
+    b_cam, q_rep, p_rep, v_rep, range_m = _rows(t_cap, t_stamp, rng, noise_rad)
     closes = []
     for k in range(t_cap.size):
         before = est.estimate
