@@ -532,10 +532,10 @@ class OnboardService:
             self.watchdog.residual(now_s, track.residual_rms_norm)
             self.watchdog.navigation(now_s, self.pipeline.last_position_age_s, rejected=self.counter.counts)
             self.watchdog.camera_clock(now_s, self.pipeline.clock_apart_s)
-            newest_us = self.pose.newest_rotation_time_boot_us()
-            self.watchdog.frame_pose(
-                now_s, track.pose_valid, None if newest_us is None else (frame.time_boot_us - newest_us) / 1e6
-            )
+            stamp_s = None  # how far the stamp stood from the telemetry: only a frame without a pose needs it
+            if not track.pose_valid and (newest_us := self.pose.newest_rotation_time_boot_us()) is not None:
+                stamp_s = (frame.time_boot_us - newest_us) / 1e6
+            self.watchdog.frame_pose(now_s, track.pose_valid, stamp_s)
             self.watchdog.camera_time_offset(
                 now_s,
                 self.pipeline.time_offset_estimate,

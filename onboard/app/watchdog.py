@@ -248,6 +248,27 @@ _SILENT_INPUT = {
 }
 
 
+class _CountGrowth:
+    """A running count (replacements, reboots) whose growth raises a warning held ``hold_s`` after the last."""
+
+    __slots__ = ("count", "grew_s", "hold_s")
+
+    def __init__(self, hold_s: float) -> None:
+        self.count = 0
+        self.grew_s = -math.inf
+        self.hold_s = hold_s
+
+    def grew(self, now_s: float, count: int) -> bool:
+        """``count`` is above the last one seen (taken as the new one)."""
+        if count <= self.count:
+            return False
+        self.count, self.grew_s = count, float(now_s)
+        return True
+
+    def held(self, now_s: float) -> bool:
+        return now_s - self.grew_s < self.hold_s
+
+
 @dataclass(frozen=True)
 class WatchdogWarning:
     """One active condition: ``code`` (module docstring) and a one-line ``message`` saying what to check."""
@@ -303,11 +324,9 @@ class Watchdog:
         self._log = logger or _log
         self._last_frame_s = float(started_s)
         self._last_mavlink_s = float(started_s)
-        self._estimator_restarts = 0
-        self._estimator_restart_s = -math.inf
-        self._autopilot_reboots = 0
+        self._estimator_restarts = _CountGrowth(ESTIMATOR_RESTART_CLEAR_S)
+        self._autopilot_reboots = _CountGrowth(AUTOPILOT_REBOOT_CLEAR_S)
         self._gnss_losses: collections.deque[tuple[float, int]] = collections.deque()  # (now_s, fix losses so far)
-        self._autopilot_reboot_s = -math.inf
         self._rotation_newest_us: int | None = None
         self._rotation_since_s = float(started_s)
         self._rotation_moved_s = -math.inf  # when the rotation streams' newest sample last moved (frames_without_pose)
@@ -359,10 +378,11 @@ class Watchdog:
         rotation streams cover, the pose buffer's, None while there is none; whether the mount is gimballed), for
         ``no_attitude`` (None: not watched).  ``mavlink_refused``: the running count of MAVLink messages signing
         refused (not in ``mavlink_rx``): while they grow and nothing is taken, ``no_mavlink`` says the keys differ.
-        ``rejected``: the running counts of rejected input by reason (the status's), for ``no_attitude`` and
+        ``rejected``: the running counts of rejected input by reason (the status's; a snapshot the caller does not
+        change afterwards, as :attr:`~onboard.core.counters.RejectCounter.counts` is), for ``no_attitude`` and
         ``gnss_dropout`` to tell a stream that stopped from one whose samples are refused."""
         if rejected is not None:
-            self._rejected = dict(rejected)
+            self._rejected = rejected  # a snapshot (RejectCounter.counts copies): kept as given
         # the attitude's silence counts from when frames and MAVLink both arrive again, not through their own
         if now_s - self._last_frame_s >= INPUTS_LIVE_S or now_s - self._last_mavlink_s >= INPUTS_LIVE_S:
             self._rotation_since_s = max(self._rotation_since_s, float(now_s))
@@ -418,9 +438,7 @@ class Watchdog:
         """The daemon's own parts: the estimator worker's replacements so far, the recorder's stats (``record``, its
         ``stopped`` and ``lost_files``; None: not recording) and why the liveness file cannot be touched (None: it
         can), for ``estimator_restarted``, ``record_stopped``, ``record_file_lost`` and ``health_file``."""
-        if estimator_restarts > self._estimator_restarts:
-            self._estimator_restarts = estimator_restarts
-            self._estimator_restart_s = float(now_s)
+        if self._estimator_restarts.grew(now_s, estimator_restarts):
             self._raise(
                 "estimator_restarted",
                 f"the estimator's worker process died or hung and was replaced ({estimator_restarts} since start; the "
@@ -428,7 +446,7 @@ class Watchdog:
                 "3-D is carried or withheld meanwhile; if it repeats, check the companion's memory and the daemon's "
                 "log",
             )
-        elif now_s - self._estimator_restart_s >= ESTIMATOR_RESTART_CLEAR_S:
+        elif not self._estimator_restarts.held(now_s):
             self._clear("estimator_restarted")
         record = record or {}
         stopped, lost = record.get("stopped"), list(record.get("lost_files") or [])
@@ -454,16 +472,14 @@ class Watchdog:
     def autopilot_reboots(self, now_s: float, reboots: int) -> None:
         """The pose buffer's count of autopilot reboots so far (its boot clock going back), for
         ``autopilot_rebooted``."""
-        if reboots > self._autopilot_reboots:
-            self._autopilot_reboots = reboots
-            self._autopilot_reboot_s = float(now_s)
+        if self._autopilot_reboots.grew(now_s, reboots):
             self._raise(
                 "autopilot_rebooted",
                 f"the autopilot's boot clock went back: it restarted ({reboots} since start; the log has each): the "
                 "pose and the 3-D estimate started again and its streams were asked again; "
                 "in flight, check the autopilot's power and its own log",
             )
-        elif now_s - self._autopilot_reboot_s >= AUTOPILOT_REBOOT_CLEAR_S:
+        elif not self._autopilot_reboots.held(now_s):
             self._clear("autopilot_rebooted")
 
     def _rotation(self, now_s: float, newest_us: int | None, gimballed: bool) -> None:
@@ -649,7 +665,7 @@ class Watchdog:
         the running counts of rejected input by reason, as :meth:`step` takes them (the warning is raised within
         a frame of the gap, before the next step would bring them)."""
         if rejected is not None:
-            self._rejected = dict(rejected)
+            self._rejected = rejected  # a snapshot (RejectCounter.counts copies): kept as given
         if position_age_s is None:
             return
         if position_age_s < self._position_age_s:
