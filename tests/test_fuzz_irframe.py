@@ -195,3 +195,26 @@ def test_valid_frames_between_garbage_all_reach_the_queue_in_order(service, genu
     for g in garbage[-1]:
         _receive(service, g)
     assert len(got) == len(genuine) and all(_same_frame(a, b) for a, b in zip(got, genuine))
+
+
+def test_a_frame_refused_on_its_length_alone_is_refused_not_lost_on_the_way():
+    """Frame 2 of 1, 2, 3 is too large: refused on its length before its header (and number) is read, so the gap
+    from 1 to 3 must not count it lost on the way as well; frame 5 of 3, 5 never came (one missing)."""
+    cfg = build_config(
+        {"estimator": {"enabled": False}, "input": {"max_frame_bytes": 4096}, "output": {"health_file": None}}
+    )
+    svc = OnboardService(cfg)
+    try:
+        pixels = np.zeros((8, 8), np.uint8)
+        too_large = encode_irframe(IrFrame(seq=2, time_boot_us=2_000, pixels=np.zeros((64, 64), np.uint8)))
+        for payload in (
+            encode_irframe(IrFrame(seq=1, time_boot_us=1_000, pixels=pixels)),
+            too_large,
+            encode_irframe(IrFrame(seq=3, time_boot_us=3_000, pixels=pixels)),
+            encode_irframe(IrFrame(seq=5, time_boot_us=5_000, pixels=pixels)),
+        ):
+            _receive(svc, payload)
+        assert svc.counter.counts.get("frame_too_large") == 1
+        assert svc.arrival_gaps.missing == 1
+    finally:
+        svc.close()

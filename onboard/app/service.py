@@ -433,9 +433,11 @@ class OnboardService:
             for tap in self.taps:
                 tap.on_received(frame, received)  # never blocks: queued, or dropped and counted when behind
         except IrFrameError as exc:
-            if exc.seq is not None:  # it arrived, broken (counted below): not a frame lost on the way
-                with self._stats_lock:
+            with self._stats_lock:  # it arrived, broken (counted below): not a frame lost on the way
+                if exc.seq is not None:
                     self.arrival_gaps.see(exc.seq)
+                else:  # refused before its number was read (its length alone): the gap it leaves knows it
+                    self.arrival_gaps.unnumbered()
             self.counter.count(f"frame_{exc.reason}", str(exc))
             return
         except Exception as exc:  # noqa: BLE001 - a callback must never raise into zenoh

@@ -343,7 +343,13 @@ class ArrivalGaps:
     senders come back to theirs with every frame.  A numbering dropped to make room while its sender may still
     publish (not yet forgotten) is counted in ``returns`` too: more senders than ``MAX_NUMBERINGS`` start a numbering
     anew with every frame, and their frames come back to none.  Numberings closer than ``reorder`` to each other
-    cannot be told apart (their frames read as late or repeated ones)."""
+    cannot be told apart (their frames read as late or repeated ones).
+
+    A payload that arrived with no readable number (:meth:`unnumbered`: refused on its length before its header
+    was read, as a 100x frame the daemon will not copy, or for a header that is not IRF1's) may be a frame that
+    did not get lost: it explains one missing number of the gap the next readable frame closes, and none if that
+    frame follows in order.  It is counted where it was refused; here it only keeps a frame that arrived out of
+    the frames lost on the way."""
 
     def __init__(self, max_gap: int = 1000, reorder: int = 8, forget_after: int = 300) -> None:
         self.max_gap = int(max_gap)
@@ -359,14 +365,20 @@ class ArrivalGaps:
         # counted, arrivals then), undone when a new numbering starts within it soon after (the step
         # was onto another sender's numbering, not past frames lost)
         self._jump: tuple[int, int, int, int] | None = None
+        self._unnumbered = 0  # payloads with no readable number since the last frame (see unnumbered)
 
     @property
     def newest(self) -> int | None:
         """The newest sequence number of the previous frame's numbering (None before any frame)."""
         return self._numberings[0].newest if self._numberings else None
 
+    def unnumbered(self) -> None:
+        """One payload arrived whose sequence number could not be read (class docstring)."""
+        self._unnumbered += 1
+
     def see(self, seq: int) -> None:
         self.arrivals += 1
+        unnumbered, self._unnumbered = self._unnumbered, 0
         best: _Numbering | None = None
         best_d = SEQ_MOD
         for num in self._numberings:  # the most recent first: it keeps a tie
@@ -398,9 +410,9 @@ class ArrivalGaps:
         if step == 0:
             return
         if step < SEQ_MOD // 2:
-            if step > 1:
-                self.missing += step - 1
-                self._jump = (best.newest, seq, step - 1, self.arrivals)
+            if step > 1 and (lost := step - 1 - min(unnumbered, step - 1)):
+                self.missing += lost
+                self._jump = (best.newest, seq, lost, self.arrivals)
             best.newest = seq
             best.arrived = ((best.arrived << min(step, self.reorder + 1)) | 1) & self._window
             return

@@ -118,3 +118,42 @@ def test_more_senders_than_the_numberings_followed_still_come_back_as_returns():
         for i in range(100):
             gaps.see(start + 5_000 + i)
     assert gaps.returns == 0  # at most three of its old numberings within forget_after: none dropped
+
+
+def _count_with_unreadable(events, **kw) -> int:
+    """``events``: a sequence number, or None for a payload that arrived with no readable number (refused as too
+    large by its length before its header was read, or shorter than the header)."""
+    gaps = ArrivalGaps(**kw)
+    for s in events:
+        if s is None:
+            gaps.unnumbered()
+        else:
+            gaps.see(s % SEQ_MOD)
+    return gaps.missing
+
+
+def test_a_frame_that_arrived_unreadable_in_a_gap_is_not_also_counted_missing():
+    """A frame refused before its number could be read (counted as refused) arrived: the gap it leaves is one frame
+    fewer lost on the way.  It explains a missing number only in the gap it arrived in: none in order after it, and
+    never more than the gap."""
+    assert _count_with_unreadable([10, None, 12]) == 0  # 11 arrived too large
+    assert _count_with_unreadable([10, None, None, 13]) == 0
+    assert _count_with_unreadable([10, None, 14]) == 2  # 3 gone, one of them arrived unreadable
+    assert _count_with_unreadable([10, None, 11, 13]) == 1  # not 11's gap: the next one is a frame lost
+    assert _count_with_unreadable([10, None, None, None, 12]) == 0  # never below what the gap holds
+    assert _count_with_unreadable([10, 12, None, 11]) == 0  # a late frame is still found
+    assert _count_with_unreadable([None, 10, 12]) == 1  # before the first frame: no gap to explain
+
+
+@given(
+    kept=st.lists(st.sampled_from(["ok", "lost", "unreadable"]), min_size=2, max_size=200),
+)
+def test_missing_counts_the_frames_that_never_arrived_whatever_arrived_unreadable(kept):
+    """Frames 1..n, each arrived, lost, or arrived unreadable: missing = those lost between the first and the last
+    frame that arrived readable."""
+    readable = [i for i, k in enumerate(kept) if k == "ok"]
+    assume(len(readable) >= 2)
+    first, last = readable[0], readable[-1]
+    lost = sum(1 for k in kept[first:last] if k == "lost")
+    events = [i + 1 if k == "ok" else None for i, k in enumerate(kept) if k != "lost"]
+    assert _count_with_unreadable(events) == lost
