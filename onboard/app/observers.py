@@ -48,7 +48,9 @@ class FrameResult:
     object of the frame as published on ``irtrack/<vehicle>/objects`` (the ``irtrack.objects/1`` dict of
     :func:`frame_objects`; None without the objects image chain or without a track); ``imaging_pose``: the pose
     the image chain got before the telemetry wait, when it asked for one (else
-    :data:`~onboard.io.record.NOT_LOOKED_UP`; :meth:`onboard.io.record.RecordingPoseSource.take_lookups`)."""
+    :data:`~onboard.io.record.NOT_LOOKED_UP`; :meth:`onboard.io.record.RecordingPoseSource.take_lookups`);
+    ``withheld_because``: the codes that withheld the frame's line of sight and 3-D position
+    (:attr:`~onboard.pipeline.frame_pipeline.FramePipeline.last_withheld`)."""
 
     received_ns: int
     pose_looked_up: bool
@@ -57,6 +59,7 @@ class FrameResult:
     payload: bytes | None
     objects: dict[str, Any] | None = None
     imaging_pose: Any = NOT_LOOKED_UP
+    withheld_because: tuple[str, ...] = ()
 
 
 def frame_objects(pipeline: Any, track: Track | None) -> dict[str, Any] | None:
@@ -126,7 +129,9 @@ class RecorderTap:
         self.recorder.on_frame(frame, received_ns)
 
     def on_frame(self, frame: IrFrame, result: FrameResult) -> None:
-        self.recorder.on_frame_input(frame, result.received_ns, result.pose_looked_up, result.pose, result.imaging_pose)
+        self.recorder.on_frame_input(
+            frame, result.received_ns, result.pose_looked_up, result.pose, result.imaging_pose, result.withheld_because
+        )
         if result.track is not None:
             self.recorder.on_track(result.track, result.payload)
         if result.objects is not None:

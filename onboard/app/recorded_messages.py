@@ -19,6 +19,7 @@ __all__ = [
     "TRUTH_NUMBERS",
     "TRUTH_NUMBERS_OR_NULL",
     "damage_text",
+    "frame_input_row",
     "json_object",
     "track_row",
     "truth_row",
@@ -100,6 +101,17 @@ def truth_row(data: bytes) -> dict:
             continue
         if not (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)):
             raise ValueError(f"field {name!r} is {_shown(value)}, not a finite number")
+    return obj
+
+
+def frame_input_row(data: bytes) -> dict:
+    """A recorded ``irtrack.frame_input/1``, checked for the fields replay reads: its frame's ``seq``,
+    ``time_boot_us``, ``received_ns``, its ``pose``, and ``withheld_because`` (absent in recordings before the
+    field) a list of warning codes, which the replay's pipeline withholds the frame's geometry for."""
+    obj = json_object(data, ("seq", "time_boot_us", "received_ns"), pose=True)
+    codes = obj.get("withheld_because", [])
+    if not (isinstance(codes, list) and all(isinstance(c, str) for c in codes)):
+        raise ValueError(f"field 'withheld_because' is {_shown(codes)}, not a list of strings")
     return obj
 
 

@@ -24,6 +24,12 @@ in the live view (the JSON and the boxes over the frame, as the daemon's live vi
 compares them frame by frame.  That chain associates objects with each frame's camera rotation, so its tracker
 runs in this process (``--jobs 2`` falls back to one: the imaging process has no poses).
 
+The daemon's withholding of a frame's line of sight and 3-D position for its watchdog's warnings (a camera or
+gimbal unlike the configuration, two senders on the frame key, a camera clock offset left uncompensated: decided
+from its links and clocks) is taken from the frame's ``irtrack.frame_input/1`` (``withheld_because``), so the replay
+withholds the same frames and restarts its estimate where the flight's did; a recording from before that field is
+replayed as if nothing had been withheld for them.
+
 Not replayed: operator selections (MAVLink camera TRACK_POINT/RECTANGLE/STOP are not recorded as
 such), and the pose buffer is not rebuilt from the raw MAVLink (the recorded poses are used).  The UTC stamps
 (``time_unix_us``, ``time_unix_sigma_us``: the boot clock mapped through the autopilot's SYSTEM_TIME, not the
@@ -103,6 +109,7 @@ from onboard.app.cli_args import (  # noqa: E402
 from onboard.app.output_files import same_file_clash  # noqa: E402
 from onboard.app.recorded_messages import (  # noqa: E402
     damage_text,
+    frame_input_row,
     json_object,
     track_row,
     truth_row,
@@ -223,7 +230,7 @@ def load_recording(path: str) -> Recording:
                 ref = FrameRef(path, m.data_offset, len(m.data), None if m.data_offset is not None else m.data)
                 frames.setdefault((m.sequence, t_us), []).append((ref, m.publish_time_ns))
             elif m.topic == FRAME_INPUT_TOPIC:
-                inputs.append(json_object(m.data, ("seq", "time_boot_us", "received_ns"), pose=True))
+                inputs.append(frame_input_row(m.data))
                 input_log_ns.append(m.log_time_ns)
             elif m.schema == STATUS_SCHEMA:
                 json_object(m.data, ())  # shown in a live view as recorded: a JSON object, or damage named here
@@ -696,6 +703,10 @@ def replay(
             fed += 1
             if live is not None:
                 live.on_frame(frame)
+            if (codes := inp.get("withheld_because")) is not None:
+                # the daemon's watchdog decided these from its links and clocks, which a replay does not have: the
+                # frame's geometry is withheld as the flight's was (its own zoom the pipeline decides again)
+                pipe.withheld_because = tuple(codes)
             try:
                 track = pipe.process(frame, int(inp["received_ns"]))
             except FrameRejected:

@@ -490,7 +490,8 @@ class OnboardService:
             looked_up, pose, imaging_pose = (
                 self._pose_memo.take_lookups() if self._pose_memo is not None else (False, None, NOT_LOOKED_UP)
             )
-            result = FrameResult(received_ns, looked_up, pose, track, payload, objects, imaging_pose)
+            withheld = self.pipeline.last_withheld
+            result = FrameResult(received_ns, looked_up, pose, track, payload, objects, imaging_pose, withheld)
             for tap in self.observers:
                 tap.on_frame(frame, result)
             if track is None:

@@ -176,6 +176,12 @@ JSON_SCHEMAS: dict[str, dict[str, Any]] = {
                     "description": "the frame's IRF1 zoom field (relative to the calibrated zoom; 0: not stated; null: "
                     "not finite); absent before the field",
                 },
+                "withheld_because": {
+                    "type": "array",
+                    "items": {"type": "string"},
+                    "description": "the codes that withheld the frame's line of sight and 3-D position (empty: "
+                    "published); absent before the field",
+                },
             },
             ["seq", "time_boot_us", "received_ns", "pose_looked_up", "pose"],
         ),

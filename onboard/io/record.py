@@ -41,10 +41,12 @@ topic                             schema                         encoding       
   or ``mono16`` (little-endian), ``step`` = width x bytes per pixel; the MCAP message's ``sequence`` is
   the frame's ``seq``.
 * ``irtrack.frame_input/1``: ``{"seq", "time_boot_us", "received_ns", "pose_looked_up": bool,
-  "pose": null | PoseAt, "zoom": number | null}``: a frame the pipeline thread took from its queue (in that order),
-  the zoom its IRF1 header stated (the RawImage has no field for it; 0 not stated, null a value JSON cannot hold,
-  which the daemon read as not stated too; absent in recordings made before the field), and the
-  interpolated pose it got (:func:`~onboard.io.pose_json.pose_to_json`; floats printed by ``repr``, so they read
+  "pose": null | PoseAt, "zoom": number | null, "withheld_because": [string]}``: a frame the pipeline thread took
+  from its queue (in that order), the zoom its IRF1 header stated (the RawImage has no field for it; 0 not stated,
+  null a value JSON cannot hold, which the daemon read as not stated too; absent in recordings made before the
+  field), the codes that withheld its line of sight and 3-D position (the status's ``geometry.withheld_because``
+  as this frame was processed: the daemon's watchdog warnings, which a replay cannot decide again, and the frame's
+  own ``zoom_mismatch``; absent before the field), and the interpolated pose it got (:func:`~onboard.io.pose_json.pose_to_json`; floats printed by ``repr``, so they read
   back bit for bit).  A frame received but never taken was dropped by the queue.  :mod:`onboard.app.replay` feeds
   these frames with these poses through a new :class:`~onboard.pipeline.frame_pipeline.FramePipeline`.
 * ``irtrack.objects/1``: the message published on ``irtrack/<v>/objects`` (:func:`onboard.imaging.objects.objects_message`:
@@ -423,21 +425,25 @@ class FlightRecorder:
             "frame", self.frame_topic, int(frame.pixels.nbytes) + 100, (frame,), int(received_ns), int(frame.seq)
         )
 
-    def on_frame_input(self, frame, received_ns: int, pose_looked_up: bool, pose, imaging_pose=NOT_LOOKED_UP) -> bool:
+    def on_frame_input(
+        self,
+        frame,
+        received_ns: int,
+        pose_looked_up: bool,
+        pose,
+        imaging_pose=NOT_LOOKED_UP,
+        withheld_because: tuple[str, ...] = (),
+    ) -> bool:
         """A frame the pipeline took, with the pose it got (``pose_looked_up`` False: refused before the lookup);
         ``imaging_pose``: the pose its image chain got before the telemetry wait, when it asked for one
-        (:meth:`RecordingPoseSource.take_lookups`; on ``/onboard/imaging_pose``)."""
+        (:meth:`RecordingPoseSource.take_lookups`; on ``/onboard/imaging_pose``); ``withheld_because``: the codes
+        that withheld its line of sight and 3-D position."""
         seq = int(frame.seq)
-        ok = self._put(
-            "frame_input",
-            FRAME_INPUT_TOPIC,
-            700,
-            (int(frame.time_boot_us), int(received_ns), bool(pose_looked_up), pose, float(frame.zoom)),
-            seq=seq,
-        )
+        t_us = int(frame.time_boot_us)
+        taken = (t_us, int(received_ns), bool(pose_looked_up), pose, float(frame.zoom), tuple(withheld_because))
+        ok = self._put("frame_input", FRAME_INPUT_TOPIC, 700, taken, seq=seq)
         if imaging_pose is not NOT_LOOKED_UP:
-            item = (int(frame.time_boot_us), imaging_pose)
-            ok = self._put("imaging_pose", IMAGING_POSE_TOPIC, 700, item, seq=seq) and ok
+            ok = self._put("imaging_pose", IMAGING_POSE_TOPIC, 700, (t_us, imaging_pose), seq=seq) and ok
         return ok
 
     def on_track(self, track, payload: bytes | None = None) -> bool:
@@ -878,7 +884,7 @@ class FlightRecorder:
                 topic, "foxglove.RawImage", rawimage_pieces(frame, self._protobuf()["foxglove.RawImage"]), now, seq
             )
         elif kind == "frame_input":
-            t_us, received_ns, looked_up, pose, zoom = item
+            t_us, received_ns, looked_up, pose, zoom, withheld = item
             obj = {
                 "seq": seq,  # the frame's, which is the message's sequence
                 "time_boot_us": t_us,
@@ -886,6 +892,7 @@ class FlightRecorder:
                 "pose_looked_up": looked_up,
                 "pose": pose_to_json(pose),
                 "zoom": zoom if math.isfinite(zoom) else None,  # NaN and inf: JSON has none
+                "withheld_because": list(withheld),
             }
             self._add_json(topic, FRAME_INPUT_SCHEMA, obj, now, seq)
             if pose is not None:

@@ -293,6 +293,7 @@ class FramePipeline:
         self._encoding: int | None = None  # the last accepted frame's (an IrFrame encoding code)
         self._last_taken: IrFrame | None = None  # the last accepted frame: a resend of it is compared pixel by pixel
         self._withholding = Withholding()  # what withholds the geometry: the daemon's codes, the frame's zoom
+        self._last_withheld: tuple[str, ...] = ()  # what withheld the last frame's (last_withheld)
         self._last_p_cam_ned_m: np.ndarray | None = None  # the newest frame's camera, for a frame without a pose
         ec = config.estimator
         # a pose whose position is dead-reckoned beyond the camera-position noise the window assumes coasts
@@ -336,6 +337,13 @@ class FramePipeline:
     @withheld_because.setter
     def withheld_because(self, codes: tuple[str, ...]) -> None:
         self._withholding.set_by_daemon(codes)
+
+    @property
+    def last_withheld(self) -> tuple[str, ...]:
+        """The codes that withheld the last frame's line of sight and 3-D position (:attr:`withheld_because` as that
+        frame was processed; empty: published, or the frame was refused before it got that far).  Recorded with the
+        frame, so that a replay, which has neither the daemon's watchdog nor its links, withholds the same frames."""
+        return self._last_withheld
 
     @property
     def last_zoom(self) -> float | None:
@@ -469,6 +477,7 @@ class FramePipeline:
     def process(self, frame: IrFrame, received_mono_ns: int | None = None) -> Track:
         """One frame -> its :class:`Track`; raises :class:`FrameRejected` (counted) for a refused frame."""
         t0 = self._clock_ns()
+        self._last_withheld = ()
         if not isinstance(frame, IrFrame):
             self._refuse("field", f"expected an IrFrame, got {type(frame).__name__}")
         K = self.intrinsics
@@ -558,6 +567,7 @@ class FramePipeline:
         self.last_position_age_s = self._position_age_s(pose)
         self._follow_compensation()
         withheld, cleared, level = self._withholding.follow()
+        self._last_withheld = withheld
         if cleared:  # the window holds rows made with the wrong camera, or is as old as the frames withheld
             self._reset_estimator(f"{', '.join(cleared)} cleared", level)
         e0 = self._clock_ns()

@@ -33,9 +33,10 @@ TELEMETRY_LATE_US = 30_000  # the telemetry before the wait ends this long befor
 TELEMETRY_AFTER_WAIT_US = 45_000
 
 
-def _record(path, n: int = N_FRAMES, zoom_of=lambda k: 0.0):
+def _record(path, n: int = N_FRAMES, zoom_of=lambda k: 0.0, withheld_of=lambda k: ()):
     """The service's frame loop over a synthetic scene with the objects chain and a recorder tap (no sockets):
-    (config, the objects messages the frames gave, tracks).  ``zoom_of(k)``: the zoom frame ``k`` states (IRF1)."""
+    (config, the objects messages the frames gave, tracks).  ``zoom_of(k)``: the zoom frame ``k`` states (IRF1);
+    ``withheld_of(k)``: the daemon's warnings that withhold frame ``k``'s geometry (as its watchdog sets them)."""
     config = build_config(
         {"imaging": {"chain": "objects"}, "estimator": {"enabled": False}, "record": {"path": str(path)}}
     )
@@ -58,10 +59,12 @@ def _record(path, n: int = N_FRAMES, zoom_of=lambda k: 0.0):
             frame = dataclasses.replace(frame, pixels=px, zoom=zoom_of(k))
             rx_ns = 1_000_000_000 + k * 33_000_000
             tap.on_received(frame, rx_ns)
+            rig.pipe.withheld_because = withheld_of(k)
             track = rig.pipe.process(frame, rx_ns)
             objects = frame_objects(rig.pipe, track)
             looked_up, pose, imaging_pose = memo.take_lookups()
-            tap.on_frame(frame, FrameResult(rx_ns, looked_up, pose, track, None, objects, imaging_pose))
+            result = FrameResult(rx_ns, looked_up, pose, track, None, objects, imaging_pose, rig.pipe.last_withheld)
+            tap.on_frame(frame, result)
             sent.append(objects)
             tracks.append(track)
     finally:
@@ -150,6 +153,34 @@ def test_a_replay_states_each_frames_recorded_zoom_and_withholds_the_same_lines_
     assert not any(flown[k] for k in zoomed) and any(flown[: zoomed.start]) and any(flown[zoomed.stop :])
     res = replay(rec, config_of(rec))
     assert [t["los_ned"] is not None for t in res.tracks] == flown
+
+
+def test_a_replay_withholds_the_lines_of_sight_the_daemon_withheld_for_its_warnings(tmp_path):
+    """The daemon withholds a frame's line of sight and 3-D position while its watchdog holds a mismatch (a camera or
+    gimbal unlike the configuration, two senders on the frame key, a clock offset left uncompensated): decided from
+    its links and clocks, which a replay does not have.  frame_input carries the codes that withheld each frame, so a
+    replay withholds the same frames (before, it published a line of sight for every one of them) and restarts its
+    estimate where the flight's did."""
+    from onboard.app.replay import config_of, load_recording, replay
+
+    mismatched = range(15, 25)
+    path = tmp_path / "mismatched.mcap"
+    _, _, tracks = _record(path, withheld_of=lambda k: ("camera_mismatch",) if k in mismatched else ())
+    rec = load_recording(str(path))
+    assert [inp["withheld_because"] for inp in rec.inputs] == [
+        ["camera_mismatch"] if k in mismatched else [] for k in range(N_FRAMES)
+    ]
+    flown = [tr.los is not None for tr in tracks]
+    assert not any(flown[k] for k in mismatched) and any(flown[: mismatched.start]) and any(flown[mismatched.stop :])
+    res = replay(rec, config_of(rec))
+    assert [t["los_ned"] is not None for t in res.tracks] == flown
+    # a recording from before the field: the frames are replayed as before, none withheld for the daemon's warnings
+    older = dataclasses.replace(
+        rec, inputs=[{k: v for k, v in i.items() if k != "withheld_because"} for i in rec.inputs]
+    )
+    assert all(
+        t["los_ned"] is not None for t in replay(older, config_of(rec)).tracks[mismatched.start : mismatched.stop]
+    )
 
 
 def test_annotations_draw_small_boxes_at_least_min_size_and_truth_labels():

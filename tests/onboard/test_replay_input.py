@@ -96,6 +96,11 @@ DAMAGE = {  # id: (topic, edit, what the error line says is wrong, given the edi
         _json_edit(lambda obj: {**obj, "pose": {k: v for k, v in obj["pose"].items() if k != "origin"}}),
         lambda d: "field 'pose': missing field 'origin'",
     ),
+    "frame_input_withheld_a_string": (
+        FRAME_INPUT_TOPIC,
+        _with(withheld_because="camera_mismatch"),
+        lambda d: "field 'withheld_because' is \"camera_mismatch\", not a list of strings",
+    ),
     "frame_input_an_array": (
         FRAME_INPUT_TOPIC,
         _json_edit(lambda obj: [1, 2]),
