@@ -66,14 +66,14 @@ def frame_objects(pipeline: Any, track: Track | None) -> dict[str, Any] | None:
     """The ``irtrack.objects/1`` message of the frame ``pipeline``'s image chain just took and ``track`` came of
     (:func:`onboard.imaging.objects.objects_message`, stamped with the frame's capture time and compensation);
     None when the chain tracks one object only (no ``last_objects``) or the frame got no track (refused).  Its lines
-    of sight are null where the track's would be for want of a pose or while the pipeline withholds the geometry
-    (``withheld_because``): the chain's rotation is then its last one, or one the daemon calls wrong."""
+    of sight are null where the track's would be for want of a pose or where the pipeline withheld the frame's geometry
+    (``last_withheld``): the chain's rotation is then its last one, or one the daemon calls wrong."""
     upd = getattr(pipeline.tracker, "last_objects", None)
     if upd is None or track is None:
         return None
     from onboard.imaging.objects import objects_message
 
-    rays = track.pose_valid and not getattr(pipeline, "withheld_because", ())
+    rays = track.pose_valid and not getattr(pipeline, "last_withheld", ())
     return objects_message(
         upd,
         track.time_boot_us,

@@ -436,7 +436,7 @@ class OnboardService:
             with self._stats_lock:  # it arrived, broken (counted below): not a frame lost on the way
                 if exc.seq is not None:
                     self.arrival_gaps.see(exc.seq)
-                else:  # refused before its number was read (its length alone): the gap it leaves knows it
+                else:  # refused before its number was read (on its length, or not an IRF1 header): its gap knows it
                     self.arrival_gaps.unnumbered()
             self.counter.count(f"frame_{exc.reason}", str(exc))
             return
