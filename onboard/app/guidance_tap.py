@@ -283,6 +283,7 @@ class GuidanceTap:
             advice=None if advice is None else (advice[0], advice[1]),
             ended=self._ended,
             heartbeat_age_s=math.inf if link is None else link.heartbeat_age_s(),
+            gnss=None if link is None else getattr(link, "gnss", None),  # (the lockstep's stand-in has none)
         )
         if decision.state != self._last_state:
             level = logging.WARNING if decision.state == "stopped" else logging.INFO

@@ -47,6 +47,7 @@ from onboard.core.json_schema import object_schema
 from onboard.core.schema import Bool, Integer, Invalid, Number, Numbers, Text, config_dataclass
 
 if TYPE_CHECKING:  # the planner imports the estimator when built: the config section stays light to import
+    from onboard.core.gnss import GnssState
     from onboard.estimation.map_estimator import MapEstimator, NoiseModel
 
 __all__ = [
@@ -728,11 +729,13 @@ class SetpointGate:
     of the autopilot's heartbeat periods, sooner than the link's own ``mavlink.heartbeat_timeout_s``), the heartbeat
     reports ``accept_autopilot`` / ``accept_custom_mode`` (armed when ``require_armed``), the vehicle is inside the
     geofence box and the altitude band, not faster than ``max_speed_mps + speed_margin_mps``, its pose (the newest
-    camera frame's) newer than ``pose_timeout_s`` and the advice still valid.  A limit reached or the link lost
-    while sending stops it (``stopped``, latched, ``why`` says which): for :data:`BRAKE_S` the setpoint is zero
-    velocity (the vehicle holds where it is instead of flying the last setpoint on until the autopilot's timeout:
-    3 s, 36 m at 12 m/s on ArduCopter), then nothing; setpoints resume only after the autopilot has left the accepting
-    mode (the pilot took over) and re-entered it.  The advice ending (expired, none in force, a target lost) brakes
+    camera frame's) newer than ``pose_timeout_s``, its GNSS not below a 3-D fix after one (GPS_RAW_INT: the autopilot
+    then dead-reckons the positions it goes on reporting, and the box and band are checked on a drifting position;
+    a vehicle that never had a 3-D fix is positioned otherwise and not judged by it) and the advice still valid.  A
+    limit reached or the link lost while sending stops it (``stopped``, latched, ``why`` says which): for
+    :data:`BRAKE_S` the setpoint is zero velocity (the vehicle holds where it is instead of flying the last setpoint
+    on until the autopilot's timeout: 3 s, 36 m at 12 m/s on ArduCopter), then nothing; setpoints resume only after
+    the autopilot has left the accepting mode (the pilot took over) and re-entered it.  The advice ending (expired, none in force, a target lost) brakes
     the same way, unlatched: the next advice is sent.  Where the accepting autopilot is PX4, whose OFFBOARD mode
     needs the stream to go on, the setpoint between advices is zero velocity at the setpoint rate (``holding``)
     instead.  :meth:`halt` brakes for a daemon that stops.  A gate that first sees the autopilot already in the
@@ -802,11 +805,13 @@ class SetpointGate:
         advice: tuple[float, np.ndarray] | None,
         heartbeat_age_s: float = 0.0,
         ended: str = "",
+        gnss: GnssState | None = None,
     ) -> SetpointDecision:
         """``pose``: (when it came, s on ``now_s``'s clock; position (3,) NED m; velocity (3,) NED m/s) or None;
         ``advice``: (valid until, s on the same clock; velocity (3,) NED m/s) or None; ``heartbeat_age_s``: how
         long ago the autopilot's newest heartbeat came (a NaN: never); ``ended``: why the last advice was ended
-        early when none is in force (the target lost, ...), said in ``why``."""
+        early when none is in force (the target lost, ...), said in ``why``; ``gnss``: the autopilot's newest
+        GPS_RAW_INT (None: none heard)."""
         if not self.config.enabled:
             return SetpointDecision(False, None, "off", self.why)
         # the link's own timeout (mavlink.heartbeat_timeout_s) is for the telemetry; a vehicle being commanded may
@@ -872,6 +877,11 @@ class SetpointGate:
             self.state, self.why = "waiting", _NO_FRAME_POSE
             return SetpointDecision(False, None, self.state, self.why)
         limit = self._limit(np.asarray(pose[1], float), np.asarray(pose[2], float))
+        if not limit and gnss is not None and not gnss.has_3d_fix and gnss.fix_losses:
+            # GLOBAL_POSITION_INT goes on through the outage, dead-reckoned by the autopilot: fresh, but drifting
+            limit = (
+                f"gnss: {gnss.fix} (fix_type {gnss.fix_type}) after a 3-D fix: the vehicle's position is dead-reckoned"
+            )
         if limit:
             return self._stop(limit, brake)
         if advice is None or not now_s <= advice[0]:  # (an expiry that is not a number is no advice)

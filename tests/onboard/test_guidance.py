@@ -742,6 +742,48 @@ def test_a_camera_gap_stops_the_setpoints_saying_so_and_a_pose_stamp_that_is_not
     assert not d.send and d.state == "waiting" and d.why.startswith("no camera frame")
 
 
+def test_a_gnss_fix_lost_while_commanding_stops_the_setpoints():
+    """GPS_RAW_INT fell from a 3-D fix to no fix during a manoeuvre while GLOBAL_POSITION_INT went on (the autopilot
+    dead-reckons through the outage): its positions stayed fresh for pose_timeout_s, and a daemon on 127.0.0.1 sent
+    20 setpoints of the advice over 5 s of no fix.  A fix lost after a 3-D one stops, latched, as a limit does; a
+    vehicle that never had a 3-D fix (one positioned otherwise) is not stopped by it."""
+    from onboard.core.gnss import GnssState
+    from onboard.estimation.guidance import SetpointGate
+
+    fix3 = GnssState.updated(None, 0.0, 3)
+    lost = GnssState.updated(fix3, 1.0, 1)
+    gate = SetpointGate(build(GuidanceConfig, {"enabled": True}))
+    p = np.array([0.0, 0.0, -60.0])
+    advice = (10.0, np.array([3.0, 0.0, 0.0]))
+
+    def step(now, gnss, mode=GUIDED):
+        return gate.step(now, link_connected=True, mode=mode, pose=(now, p, np.zeros(3)), advice=advice, gnss=gnss)
+
+    step(0.0, fix3, LOITER)
+    assert step(0.1, fix3).send and gate.state == "sending"
+    d = step(1.0, lost)
+    assert d.send and not d.v_ned_mps.any() and d.state == "stopped"  # the brake
+    assert d.why.startswith("gnss: no_fix") and gate.stops == {"gnss": 1}
+    assert not step(2.5, GnssState.updated(lost, 2.4, 3)).send and gate.state == "stopped"  # latched, fix back or not
+    never = GnssState.updated(GnssState.updated(None, 0.0, 0), 1.0, 1)  # no 3-D fix ever: positioned otherwise
+    other = SetpointGate(build(GuidanceConfig, {"enabled": True}))
+    other.step(0.0, link_connected=True, mode=LOITER, pose=None, advice=None)
+    assert other.step(0.1, link_connected=True, mode=GUIDED, pose=(0.1, p, np.zeros(3)), advice=advice, gnss=never).send
+
+    now = [100.0]  # the tap hands the gate the link's GPS_RAW_INT
+    tap, link, sent = _in_loop_tap(now)
+    link.gnss = fix3
+    tap._pose = (now[0], p, np.zeros(3))
+    tap._advice = (now[0] + 3.0, np.array([1.0, 0.0, 0.0]), None)
+    link.autopilot_mode = GUIDED
+    assert tap.setpoint_step(now[0], link) and sent[-1][0] == 1.0
+    link.gnss = lost
+    now[0] += 0.25
+    tap._pose = (now[0], p, np.zeros(3))
+    assert tap.setpoint_step(now[0], link) and not sent[-1].any()
+    assert tap.status()["setpoints"]["why"].startswith("gnss: no_fix")
+
+
 def test_poses_lost_with_the_heartbeat_late_name_the_link_not_only_the_camera():
     """MAVLink gone both ways for 3 s: the frames lost their poses (pose_lost) before the heartbeat timed out, and the
     latched reason pointed at the camera alone (a fault-injection audit)."""
