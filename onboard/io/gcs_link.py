@@ -11,6 +11,11 @@ The camera's protocol lives in :mod:`onboard.io.camera_protocol` (pure); this mo
   system id once known (:meth:`GcsLink.set_system_id`; nothing is sent before).  ``udpout`` and TCP
   are pymavlink connections (:func:`onboard.io.mavlink_wire.connect`; a ``tcp:`` one over a socket connected
   here, :class:`onboard.io.mavlink_transport.TcpDial`); ``udpin`` is our own socket (below).
+* A ``udpout`` endpoint takes datagrams from its ground station's address only: its socket is connected there at
+  its first send (when pymavlink has looked the address up; before, it has no port to send to).  pymavlink's
+  ``udpout`` socket is unconnected, open on every interface, and it read whatever reached the port our heartbeats
+  come from as the ground station's: anyone who saw one could stop the tracking.  As the autopilot link's ``udpout``
+  (:class:`onboard.io.mavlink_transport.UdpTransport`); a ground station answers from the port it listens on.
 * :meth:`GcsLink.poll` reads every endpoint without blocking and returns the COMMAND_LONG /
   COMMAND_INT addressed to us (target system 0 or ours, target component 0 or ours) as
   :class:`~onboard.io.camera_protocol.CameraCommand` (with COMMAND_LONG's ``confirmation``, which tells a
@@ -280,6 +285,8 @@ class GcsLink:
         self._conns: list[Any] = [None] * len(parsed)
         self._redial_s: dict[int, float] = {}
         self._dialling: dict[int, TcpDial] = {}  # tcp: connections under way
+        #: udpout endpoints whose socket is not connected to their ground station yet (module docstring)
+        self._unpinned = {idx for idx, ep in enumerate(parsed) if ep.kind == "udpout"}
         try:
             for idx in range(len(parsed)):
                 self._dial(idx, self._clock(), first=True)
@@ -512,11 +519,26 @@ class GcsLink:
                     conn.send_to(message_from_fields(out.msg, out.fields), dest)
                 else:
                     conn.mav.send(message_from_fields(out.msg, out.fields))
+                    if idx in self._unpinned:
+                        self._pin(idx, conn)
                 n += 1
             except Exception as exc:  # noqa: BLE001 - a send failure costs this message only
                 self._count("gcs_tx_error", f"{out.msg} on {self.endpoints[idx]}: {type(exc).__name__}: {exc}")
         self.messages_tx += n
         return n
+
+    def _pin(self, idx: int, conn) -> None:
+        """Connect ``udpout`` endpoint ``idx``'s socket to its ground station (module docstring), once pymavlink has
+        looked the address up: from then on the kernel drops datagrams from any other address."""
+        if getattr(conn, "resolved_destination_addr", None) is None:
+            return  # pymavlink's send failed before it looked the address up: pinned at a later send
+        try:
+            conn.port.connect(conn.destination_addr)
+        except OSError:
+            # no route there now: the send just made failed the same way (pymavlink drops that error), and the
+            # socket has sent nothing anyone could answer; tried again at the next send
+            return
+        self._unpinned.discard(idx)
 
     def _via(self, via) -> tuple[int, Address | None] | None:
         """``via`` when it is one :meth:`poll` made (an endpoint's index, a source address or None), else None."""

@@ -342,6 +342,39 @@ def test_udpout_sends_to_its_address_whoever_else_speaks():
         listener.close()
 
 
+def test_udpout_takes_commands_from_its_ground_station_only():
+    port = free_udp_port()
+    listener = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    listener.bind(("127.0.0.1", port))
+    listener.settimeout(WAIT_S)
+    stranger = Peer(port, sysid=77, compid=77)
+    link = GcsLink([f"udpout:127.0.0.1:{port}"], 100)
+    try:
+        link.set_system_id(SYSID)
+        hb = [o for o in _proto().tick(0.0, None) if o.msg == "heartbeat"]
+        assert link.send(hb[0]) == 1
+        _, link_addr = listener.recvfrom(65535)
+        # the port the camera sends from is no udpin: a STOP from an address nobody configured is not a command
+        stop = mav.MAVLink_command_long_message(SYSID, 100, mav.MAV_CMD_CAMERA_STOP_TRACKING, 0, 0, 0, 0, 0, 0, 0, 0)
+        stranger.dest = link_addr
+        stranger.send(stop)
+        request = mav.MAVLink_command_long_message(
+            SYSID, 100, mav.MAV_CMD_REQUEST_MESSAGE, 0, mav.MAVLINK_MSG_ID_CAMERA_INFORMATION, 0, 0, 0, 0, 0, 0
+        )
+        listener.sendto(bytes(request.pack(mav.MAVLink(None, srcSystem=GCS[0], srcComponent=GCS[1]))), link_addr)
+        commands: list = []
+        deadline = time.monotonic() + WAIT_S
+        while not commands and time.monotonic() < deadline:
+            commands += link.poll()
+            time.sleep(0.01)
+        commands += link.poll()  # the stranger's datagram was sent first: it would have come with the ground station's
+        assert [(c.command, c.src_system) for c in commands] == [(mav.MAV_CMD_REQUEST_MESSAGE, GCS[0])]
+    finally:
+        link.close()
+        listener.close()
+        stranger.close()
+
+
 @pytest.mark.parametrize(
     "kw, expected",
     [
