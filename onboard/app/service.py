@@ -803,13 +803,24 @@ class OnboardService:
         """The camera component's turn in the main loop: commands in (tracking requests queued to the
         pipeline), the pipeline's decisions ACKed, heartbeat and #275/#276 out, with the autopilot's
         system id (the link's, else ``mavlink.autopilot_sysid``; a ground station ties the camera to
-        that vehicle); silent while neither is known.  Returns
+        that vehicle); silent while neither is known (commands read then are dropped, counted
+        ``gcs_command_before_system_id``).  Returns
         the number of messages sent."""
         cam, gcs = self.camera, self.gcs
         if cam is None or gcs is None:
             return 0
         sysid = getattr(self.link, "autopilot_sysid", None) or self.config.mavlink.autopilot_sysid
         if sysid is None:
+            # read and dropped, not left in the socket: without a system id nothing can be answered, and a command
+            # left waiting would be carried out when the autopilot appears, long after its sender gave up on it (a
+            # click 10 s old selected where the target no longer is); only broadcast ones reach here (GcsLink.poll)
+            for cmd in gcs.poll():
+                self.counter.count(
+                    "gcs_command_before_system_id",
+                    f"command {cmd.command} from {cmd.src_system}/{cmd.src_component} dropped: the autopilot's "
+                    "system id is not known yet (mavlink.autopilot_sysid unset, no autopilot locked)",
+                    level=logging.INFO,
+                )
             return 0
         gcs.set_system_id(sysid)
         # CAMERA_INFORMATION names the gimbal the camera is on: the one the link follows (0: none, or not heard yet)

@@ -299,6 +299,22 @@ def test_camera_is_silent_until_the_autopilot_is_known_then_speaks_as_its_system
     assert svc.gcs.sent[0].msg == "heartbeat" and svc.gcs.sent[0].fields["type"] == mav.MAV_TYPE_CAMERA
 
 
+def test_a_command_read_before_the_autopilot_is_known_is_dropped_and_counted_not_carried_out_later():
+    """Without a system id the camera cannot answer: a command left waiting in the socket would be carried out when
+    the autopilot appears, seconds or minutes after its sender gave up on it (ACK timeout, 3 tries)."""
+    svc, clock = _service("operator")
+    for _ in range(3):  # a ground station broadcasting (target 0/0) to a camera whose vehicle is not heard yet
+        svc.gcs.inbox.append(CameraCommand(mav.MAV_CMD_CAMERA_TRACK_POINT, (0.5, 0.5, 0.05, 0, 0, 0, 0), 255, 190))
+        assert svc.camera_step(clock()) == 0
+    assert svc.gcs.inbox == [] and svc.gcs.sent == []
+    assert svc.counter.counts["gcs_command_before_system_id"] == 3
+    svc.link = _FakeLink()
+    clock.t_s += 10.0
+    svc.camera_step(clock())
+    assert _acks(svc.gcs.sent) == [] and svc.camera.pending_requests() == 0
+    assert svc.camera.counters.get("cmd_camera_track_point", 0) == 0
+
+
 @pytest.mark.parametrize("gimballed, followed, expected", [(True, 154, 154), (True, None, 0), (False, 154, 0)])
 def test_camera_information_names_the_gimbal_the_link_follows(gimballed, followed, expected):
     """common.xml CAMERA_INFORMATION.gimbal_device_id: the gimbal's component id (or 1-6), 0 when none is
