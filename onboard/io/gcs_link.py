@@ -15,7 +15,8 @@ The camera's protocol lives in :mod:`onboard.io.camera_protocol` (pure); this mo
   its first send (when pymavlink has looked the address up; before, it has no port to send to).  pymavlink's
   ``udpout`` socket is unconnected, open on every interface, and it read whatever reached the port our heartbeats
   come from as the ground station's: anyone who saw one could stop the tracking.  As the autopilot link's ``udpout``
-  (:class:`onboard.io.mavlink_transport.UdpTransport`); a ground station answers from the port it listens on.
+  (:class:`onboard.io.mavlink_transport.UdpTransport`); a ground station answers from the port it listens on.  Not
+  to a multicast group, whose members answer from addresses of their own.
 * :meth:`GcsLink.poll` reads every endpoint without blocking and returns the COMMAND_LONG /
   COMMAND_INT addressed to us (target system 0 or ours, target component 0 or ours) as
   :class:`~onboard.io.camera_protocol.CameraCommand` (with COMMAND_LONG's ``confirmation``, which tells a
@@ -66,6 +67,7 @@ radio gets the camera through a router (``deploy/README.md``: mavlink-router).
 
 from __future__ import annotations
 
+import ipaddress
 import logging
 import math
 import time
@@ -532,6 +534,10 @@ class GcsLink:
         looked the address up: from then on the kernel drops datagrams from any other address."""
         if getattr(conn, "resolved_destination_addr", None) is None:
             return  # pymavlink's send failed before it looked the address up: pinned at a later send
+        if ipaddress.ip_address(conn.destination_addr[0]).is_multicast:
+            # a group's members answer from their own addresses: connected to the group, the socket would drop them all
+            self._unpinned.discard(idx)
+            return
         try:
             conn.port.connect(conn.destination_addr)
         except OSError:

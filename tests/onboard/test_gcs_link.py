@@ -375,6 +375,20 @@ def test_udpout_takes_commands_from_its_ground_station_only():
         stranger.close()
 
 
+def test_udpout_to_a_multicast_group_still_takes_its_members_answers():
+    """A member answers from its own address, not the group's: the socket is left unconnected."""
+    link = GcsLink([f"udpout:239.255.77.1:{free_udp_port()}"], 100)
+    try:
+        link.set_system_id(SYSID)
+        hb = [o for o in _proto().tick(0.0, None) if o.msg == "heartbeat"]
+        link.send(hb[0])  # written or not (a host without a multicast route): the address is looked up
+        link.send(hb[0])
+        with pytest.raises(OSError):
+            link._conns[0].port.getpeername()
+    finally:
+        link.close()
+
+
 @pytest.mark.parametrize(
     "kw, expected",
     [
