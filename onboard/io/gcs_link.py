@@ -534,7 +534,14 @@ class GcsLink:
         looked the address up: from then on the kernel drops datagrams from any other address."""
         if getattr(conn, "resolved_destination_addr", None) is None:
             return  # pymavlink's send failed before it looked the address up: pinned at a later send
-        if ipaddress.ip_address(conn.destination_addr[0]).is_multicast:
+        try:  # pymavlink puts the address in place of a host name once the name resolves
+            address = ipaddress.ip_address(conn.destination_addr[0])
+        except ValueError:
+            # a name that did not resolve at the first send: pymavlink drops that error and sends to the name from
+            # then on without putting an address in its place, so this endpoint stays unconnected, as before
+            self._unpinned.discard(idx)
+            return
+        if address.is_multicast:
             # a group's members answer from their own addresses: connected to the group, the socket would drop them all
             self._unpinned.discard(idx)
             return

@@ -375,6 +375,23 @@ def test_udpout_takes_commands_from_its_ground_station_only():
         stranger.close()
 
 
+def test_udpout_to_a_host_name_is_pinned_once_it_resolves_and_one_that_does_not_is_no_error():
+    """pymavlink puts the address a name resolves to in place of the name at its first send; a name that does not
+    resolve leaves the name, and the socket unconnected, with nothing counted against the link's sends."""
+    counters = RejectCounter()
+    link = GcsLink([f"udpout:localhost:{free_udp_port()}", "udpout:no-such-host.invalid:14550"], 100, counter=counters)
+    try:
+        link.set_system_id(SYSID)
+        hb = [o for o in _proto().tick(0.0, None) if o.msg == "heartbeat"]
+        link.send(hb[0])
+        assert link._conns[0].port.getpeername()[0] == "127.0.0.1"
+        with pytest.raises(OSError):
+            link._conns[1].port.getpeername()
+        assert "gcs_tx_error" not in counters.counts
+    finally:
+        link.close()
+
+
 def test_udpout_to_a_multicast_group_still_takes_its_members_answers():
     """A member answers from its own address, not the group's: the socket is left unconnected."""
     link = GcsLink([f"udpout:239.255.77.1:{free_udp_port()}"], 100)
