@@ -49,8 +49,9 @@ line-of-sight sigma below :data:`~onboard.estimation.fleet.MIN_BEARING_SIGMA_RAD
 clock check names, off the others by more than the pairing window: its rays could not pair and would move a target),
 ``ray_name_clash`` (DEBUG: a vehicle name two vehicles share, below), ``ray_stale``, ``ray_out_of_order`` (a ray not
 newer than its object's last, among them a message the link reordered), ``duplicate`` (a seq heard again:
-redelivered or replayed), ``inbox_full`` (a flood beyond ``INBOX_MAX``), ``receive_error`` (a message that failed in
-a way no check above names: counted, the loop goes on); ``no_line_of_sight`` (a track without a target),
+redelivered or replayed; from a camera elsewhere it is a second vehicle's, ``camera_jump``), ``inbox_full`` (a flood
+beyond ``INBOX_MAX``), ``receive_error`` (a message that failed in a way no check above names: counted, the loop goes
+on); ``no_line_of_sight`` (a track without a target),
 ``ray_not_measured`` (a line of sight whose track says ``measurement_valid`` false: a coasting tracker's prediction,
 not a measurement; a track without the key is read as false, as the schema's reader does), ``ray_of_ended_object``
 (a late ray of an object its vehicle's track has left) and the tracker's events are counted at DEBUG level, but

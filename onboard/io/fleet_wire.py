@@ -61,9 +61,11 @@ hundreds of metres between consecutive tracks.  Each such step is an anomaly; ``
 ``window_s`` (5 s) name the vehicle a name clash until ``clear_after_s`` (5 s) pass without one.  A daemon restart
 (``seq`` from 0) or a reboot (``time_boot_us`` from 0) is one anomaly; a message the link delivered late, which
 falls between two of the stream's recent messages in both ``seq`` and ``time_boot_us``, is none (a reorder: the
-tracker refuses its ray, older than its object's newest, as ``ray_out_of_order``); a new local origin two (the first
-track there is refused as a jump, the next one, consistent with it, is the stream's new place).  A single camera
-jump (a glitch, a track placed against another origin) is refused alone (``camera_jump``), and a camera farther than
+tracker refuses its ray, older than its object's newest, as ``ray_out_of_order``); a message heard again (a
+redelivery, a replay) is refused as ``duplicate`` and is none, unless its camera is more than ``slack_m`` from
+where that message's was: then it is a second vehicle's on the same counts (``camera_jump``, an anomaly); a new
+local origin two (the first track there is refused as a jump, the next one, consistent with it, is the stream's new
+place).  A single camera jump (a glitch, a track placed against another origin) is refused alone (``camera_jump``), and a camera farther than
 ``MAX_CAMERA_DISTANCE_M`` from the fleet's origin is refused outright (``camera_far``).
 
 Frames: each vehicle's ``camera_ned_m`` / ``los_ned`` are in its own local NED frame (its track's
@@ -178,6 +180,8 @@ class _Stream:
     anomalies: deque = field(default_factory=deque)  # arrival times, s
     # the newest (seq, time_boot_us) pairs heard: one heard again is a repeat of that message, not a second stream
     seen: Recent = field(default_factory=lambda: Recent(RECENT_MESSAGES))
+    # the camera each of those carried: a repeat is the same message, at the same place
+    cameras: dict = field(default_factory=dict)
 
 
 class StreamCheck:
@@ -186,9 +190,11 @@ class StreamCheck:
     Step method :meth:`add` (one track's ``seq``, ``time_boot_us``, common time, camera in the fleet frame or
     None, arrival time on the fusion's clock) returns ``camera_far`` / ``camera_jump`` for a track whose camera
     is not believable (refuse its ray), ``duplicate`` for a message heard already (one of the stream's last
-    :data:`RECENT_MESSAGES`: a redelivery or a replay, refused without counting against the name), or None (also
-    for a late message that slots into the stream's recent ``seq`` and ``time_boot_us`` order: the link delivered it
-    after newer ones, no anomaly; the tracker refuses its ray as out of order); :meth:`clashing` names the vehicles
+    :data:`RECENT_MESSAGES`: a redelivery or a replay, refused without counting against the name; one whose camera
+    is more than ``slack_m`` from where that message's was is another vehicle's on the same counts, ``camera_jump``
+    and an anomaly), or None (also for a late message that slots into the stream's recent ``seq`` and
+    ``time_boot_us`` order: the link delivered it after newer ones, no anomaly; the tracker refuses its ray as out of
+    order); :meth:`clashing` names the vehicles
     whose recent anomalies say two vehicles share the name.  ``max_speed_mps``: the fastest vehicle, ``slack_m``: a
     navigation fix's jump allowed on top of it."""
 
@@ -239,21 +245,26 @@ class StreamCheck:
         st = self._streams.get(vehicle)
         if st is None:
             st = self._streams[vehicle] = _Stream(seq, time_boot_us)
-            st.seen.add((seq, time_boot_us))
+            self._note(st, seq, time_boot_us, p)
             if p is not None:
                 st.anchor = (t_s, p)
             return None
         if (seq, time_boot_us) in st.seen:
-            return "duplicate"
+            first = st.cameras.get((seq, time_boot_us))
+            if p is None or first is None or float(np.linalg.norm(p - first)) <= self.slack_m:
+                return "duplicate"
+            # the same seq and time_boot_us from a camera elsewhere: no repeat of that message but a second vehicle's
+            # on the same counts (two daemons of one name started together, on one simulated boot clock)
+            return self._judge(vehicle, st, True, arrival_unix_s, "camera_jump")
         late = seq <= st.seq or time_boot_us < st.boot_us
         if (
             late
             and self._slots_in(st, seq, time_boot_us)
             and (p is None or st.anchor is None or self._near(st.anchor, t_s, p))
         ):
-            st.seen.add((seq, time_boot_us))
+            self._note(st, seq, time_boot_us, p)
             return None
-        st.seen.add((seq, time_boot_us))
+        self._note(st, seq, time_boot_us, p)
         anomaly = late
         st.seq, st.boot_us = seq, time_boot_us
         verdict = None
@@ -265,6 +276,20 @@ class StreamCheck:
             else:
                 st.candidate = (t_s, p)
                 anomaly, verdict = True, "camera_jump"
+        return self._judge(vehicle, st, anomaly, arrival_unix_s, verdict)
+
+    @staticmethod
+    def _note(st: _Stream, seq: int, time_boot_us: int, p: np.ndarray | None) -> None:
+        st.seen.add((seq, time_boot_us))
+        if p is not None:
+            st.cameras[(seq, time_boot_us)] = p
+            if len(st.cameras) > 2 * RECENT_MESSAGES:  # keep those of the messages still among the recent ones
+                st.cameras = {k: c for k, c in st.cameras.items() if k in st.seen}
+
+    def _judge(
+        self, vehicle: str, st: _Stream, anomaly: bool, arrival_unix_s: float, verdict: str | None
+    ) -> str | None:
+        """Note an ``anomaly`` (or none) of ``vehicle``'s stream, name the clash once they are enough; ``verdict``."""
         if anomaly:
             st.anomalies.append(arrival_unix_s)
         while st.anomalies and st.anomalies[0] < arrival_unix_s - self.window_s:

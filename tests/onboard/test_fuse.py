@@ -1034,6 +1034,23 @@ def test_a_message_heard_twice_or_replayed_is_a_duplicate_not_a_second_vehicle()
     assert sorted(c["vehicle"] for c in last["vehicles"]) == ["uav1", "uav2"]
 
 
+def test_two_daemons_of_one_name_on_the_same_counts_are_a_name_clash_not_duplicates():
+    """Two daemons both named uav2, started together on one simulated boot clock: each message of the second carries
+    the seq and time_boot_us of one of the first's, from a camera 424 m away.  Each was refused as a ``duplicate``
+    (a redelivery), so the clash was never named (90 in 3 s in the fleet audit's run, name_clash 0); a repeat from
+    another place is another vehicle's message."""
+    fusion, rng = new_fusion(), np.random.default_rng(9)
+    twin = SynthVehicle("uav2", (300.0, 300.0, -100.0), (0.0, -8.0, 0.0))
+    for k, t in enumerate(np.arange(0.0, 3.0, 1 / 30)):
+        for v in (UAV1, UAV2):
+            fusion.receive(f"irtrack/{v.name}/track", payload_of(v, t, rng, k), T0_UNIX_S + t + 0.005)
+        fusion.receive("irtrack/uav2/track", payload_of(twin, t, rng, k), T0_UNIX_S + t + 0.006)
+        fusion.flush()
+    st = fusion.status(T0_UNIX_S + 3.0)
+    assert st["name_clash"] == ["uav2"] and st["events"]["name_clash"] == 1
+    assert "duplicate" not in st["rejected"]
+
+
 def test_a_link_that_reorders_messages_is_not_two_vehicles_under_one_name():
     """uav2's link swaps two adjacent messages every 0.5 s: each late one stepped seq and time_boot_us back, an
     anomaly, and four in 5 s named a name clash and withdrew uav2.  A late message that slots into its stream's recent
