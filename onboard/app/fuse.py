@@ -36,7 +36,8 @@ frame of the newest camera period is in, or a vehicle is ``max_defer_s`` (50 ms)
 at 30 Hz then cost one solve per period instead of about two, at no latency from the later frame.
 Bad input never stops it and never becomes a fused point: it is counted by reason and logged at most once per
 ``--reject-log-interval-s`` per reason: ``bad_vehicle_name`` (a key chunk that is no daemon's vehicle name: no
-output key could carry it), ``not_json``, ``bad_track`` (the schema's reader names the key; an origin's altitude
+output key could carry it), ``track_too_large`` (a payload over ``MAX_TRACK_BYTES``, 64 KiB, refused unparsed),
+``not_json``, ``bad_track`` (the schema's reader names the key; an origin's altitude
 outside ``ORIGIN_ALT_RANGE_M`` too), ``vehicle_not_configured`` (a vehicle outside ``--vehicles``, a WARNING naming a close
 configured name: a name mistyped there shows), ``too_many_vehicles`` (a new name while ``MAX_VEHICLES`` are heard and none is silent; a
 silent one is forgotten to make room), ``bad_time_unix_us``, ``no_origin``, ``stale`` /
@@ -160,6 +161,9 @@ POLL_S = 0.1
 INBOX_MAX = 3000
 #: messages fused per turn of the main loop before it publishes what is due: a flood must not starve the output
 MAX_PER_TURN = 300
+#: a track message's size at most: a daemon's irtrack.track/2 is about 2 KB; parsing is paid per byte while zenoh's
+#: thread waits for the interpreter, so one publisher of megabyte messages (5 MB at 10 Hz) stalled the whole fusion
+MAX_TRACK_BYTES = 64 * 1024
 #: a node that has received no track this long after its start says so, once
 NOTHING_HEARD_S = 5.0
 #: vehicles the fusion keeps state for at most: a new name beyond them takes the place of the longest silent one,
@@ -379,6 +383,9 @@ class Fusion:
             check_vehicle_name(vehicle)
         except IrtrackError as exc:  # zenoh keys take names no daemon sends and no output key can carry
             self.counter.count("bad_vehicle_name", f"{key}: {exc}")
+            return
+        if len(payload) > MAX_TRACK_BYTES:  # refused unparsed: its parse would be the cost
+            self.counter.count("track_too_large", f"{key}: {len(payload)} bytes > {MAX_TRACK_BYTES}", subject=vehicle)
             return
         try:
             obj = json.loads(payload)

@@ -177,6 +177,19 @@ def test_bad_input_is_counted_by_reason_and_never_becomes_a_fused_point(payload,
     assert fusion.tracker.targets == ()
 
 
+def test_a_track_past_the_size_cap_is_refused_unparsed():
+    """A good track padded with a 100 KB key was parsed and fused (extra keys are ignored); parsing is paid per byte,
+    and one publisher of 5 MB tracks at 10 Hz stalled the fusion process for 6 s (no status, every vehicle silent)."""
+    fusion = new_fusion()
+    rng = np.random.default_rng(5)
+    padded = json.dumps({**_good(), "junk": "x" * 100_000}).encode()
+    for k, t in enumerate(np.arange(0.0, 0.5, 1 / 30)):
+        fusion.receive("irtrack/uav2/track", payload_of(UAV2, t, rng, k), T0_UNIX_S + t)
+        fusion.receive("irtrack/uav1/track", padded, T0_UNIX_S + t)
+    assert fusion.flush() == []
+    assert fusion.counter["track_too_large"] == 15 and fusion.tracker.targets == ()
+
+
 def test_each_vehicles_refusals_are_logged_though_another_vehicle_logged_the_same_reason(caplog):
     """Stale tracks of uav1, then of uav2 within the log interval: uav2's were counted but never logged, so its
     fault stayed hidden behind uav1's (a fault-injection audit's leftover: per-vehicle log intervals)."""
@@ -862,7 +875,8 @@ def test_a_malformed_message_is_counted_never_a_crash_and_a_refused_one_sets_no_
     }
     for obj in bad.values():
         fusion.receive("irtrack/uav1/track", json.dumps(obj).encode(), T0_UNIX_S + 0.01)
-    fusion.receive("irtrack/uav1/track", b"[" * 100_000 + b"]" * 100_000, T0_UNIX_S + 0.01)
+    # past the parser's depth, within MAX_TRACK_BYTES (a bigger one is refused unparsed)
+    fusion.receive("irtrack/uav1/track", b"[" * 20_000 + b"]" * 20_000, T0_UNIX_S + 0.01)
     assert fusion.counter["bad_track"] == 3 and fusion.counter["not_json"] == 1
     stray = {**good, "vehicle": "uav3", "los_sigma_az_deg": 1e-9, "los_sigma_el_deg": 1e-9}
     stray["origin"] = {"lat_deg": 0.0, "lon_deg": 0.0, "alt_m": 0.0}
