@@ -22,7 +22,9 @@ median, ms; ``latency_floor_ms``: the floors themselves) and ``clock_inconsisten
 ``FORGET_AFTER_S`` (10 min) of silence, ``vehicle_forgotten`` (INFO: out of the status and the per-vehicle outputs).
 ``clock_step`` (WARNING): a vehicle's ``UTC - boot`` offset stepped (:class:`~onboard.io.fleet_wire.CommonClock`);
 the clock check starts judging it over from its new stamps, and until it has, its rays carry the step as their
-time sigma.
+time sigma.  ``clock_memory_dropped`` (WARNING): a vehicle whose stamps the clock check refuses (``clock_off``) sent
+a track without one; the ``UTC - boot`` offset remembered from those stamps is dropped and its unstamped frames are
+timed by their arrival (within the pairing window its remembered rays take the check's error as their time sigma).
 A vehicle is one once a track of it parses; ``MAX_VEHICLES`` (64) are kept at most.  The zenoh options are
 :mod:`onboard.app.watch`'s (the daemon's names), and so is their default, which is not the daemon's: with none given it
 connects to ``tcp/127.0.0.1:7447``.  Like the daemon it dials no peer that gossip names (:func:`zenoh_settings`;
@@ -243,6 +245,7 @@ EVENTS = frozenset(
         "fleet_origin_moved",
         "clock_inconsistent",
         "clock_step",
+        "clock_memory_dropped",
         "name_clash",
         "name_clash_cleared",
         "target_created",
@@ -407,6 +410,19 @@ class Fusion:
         if not self._heard(vehicle, arrival_unix_s):
             return
         reading = self.clock.place(vehicle, track.time_boot_us, time_unix_us, arrival_unix_s)
+        off_s = self._clock_off(vehicle, arrival_unix_s) if reading.source == "remembered" else None
+        if off_s is not None and abs(off_s) > self.tracker.config.pair_max_dt_s:
+            # the offset remembered is the one of the stamps the clock check refuses (clock_off): as far off as they
+            # were, and fused, with no stamp left to refuse; the frame's arrival times it within the vehicle's latency
+            # floor instead (within the pairing window its rays take the error as their time sigma, below)
+            self.clock.forget_stamps(vehicle)
+            self.counter.count(
+                "clock_memory_dropped",
+                f"{key}: no time_unix_us, and the UTC - boot offset remembered from its stamps is the one the clock "
+                f"check finds {off_s * 1e3:+.0f} ms off the other vehicles': its frames are timed by their arrival",
+                subject=vehicle,
+            )
+            reading = self.clock.place(vehicle, track.time_boot_us, time_unix_us, arrival_unix_s)
         if reading.step_s is not None:
             self._clock_stepped(key, vehicle, reading.step_s)
         # every frame times the vehicle's clock, with a target or not; but not a stamp whose UTC - boot offset jumped
@@ -463,7 +479,7 @@ class Fusion:
         elif source == "remembered":  # an old offset: its drift since (past --max-time-sigma-ms, refused)
             time_sigma_s = self.clock.remembered_sigma_s(vehicle, track.time_boot_us)
             why = "the drift of its boot clock since its last track with a time_unix_us"
-        off = self._clock_off(vehicle, arrival_unix_s) if time_unix_us is not None else None
+        off = self._clock_off(vehicle, arrival_unix_s) if source in ("vehicle", "remembered") else None
         step = self._stepped.get(vehicle) if source == "vehicle" else None
         if step is not None and abs(step) > time_sigma_s:
             time_sigma_s = abs(step)

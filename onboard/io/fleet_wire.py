@@ -24,7 +24,8 @@ it carries one (``time_source: vehicle``; a stamp whose ``UTC - boot`` offset ju
 until the next stamps say whether it was a glitch or the vehicle's UTC stepped), else its ``time_boot_us`` plus a
 configured per-vehicle offset (``configured``), else plus the ``UTC - boot`` offset of the vehicle's latest stamped
 track (``remembered``: a daemon restarted on a running autopilot publishes its first seconds unstamped, on the same
-boot clock; the memory ends when the boot clock goes backwards, a reboot), else plus an offset estimated from
+boot clock; the memory ends when the boot clock goes backwards, a reboot, or when the clock check refuses the stamps it
+came from: :meth:`CommonClock.forget_stamps`), else plus an offset estimated from
 arrival times, the minimum of ``arrival - time_boot`` over the last ``window_s`` (``arrival``: the fusion's clock,
 biased by the vehicle's shortest capture-to-arrival latency, typically a few ms on one machine; it drifts with the
 vehicle's clock and resets when the boot clock goes backwards).
@@ -356,6 +357,12 @@ class CommonClock:
         """Drop what is kept of ``vehicle``'s clock (a vehicle long silent; a configured offset stays)."""
         for kept in (self._arrivals, self._last_boot_s, self._stamped, self._held):
             kept.pop(vehicle, None)
+
+    def forget_stamps(self, vehicle: str) -> None:
+        """Drop the ``UTC - boot`` offset kept from ``vehicle``'s stamps (the clock check found them off): its unstamped
+        frames are ``arrival``-timed from then on, not ``remembered`` by that offset (a configured one still wins)."""
+        self._stamped.pop(vehicle, None)
+        self._held.pop(vehicle, None)
 
     @staticmethod
     def _agree(offset_s: float, kept: tuple[float, ...], boot_s: float) -> bool:

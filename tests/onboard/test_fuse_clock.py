@@ -230,3 +230,32 @@ def test_a_clock_that_steps_back_into_agreement_is_fused_again_within_a_second()
     assert fused and min(p["time_unix_us"] / 1e6 - T0_UNIX_S for p in fused) < fixed_s + 1.0
     assert fusion.status(T0_UNIX_S + 5.0)["clock_inconsistent"] == []
     assert all(nees(p) < NEES_MAX for p in fused), max(map(nees, fused))
+
+
+# --------------------------------------------------------------------------- a clock named off, then no stamps
+
+
+def test_a_vehicle_named_off_that_loses_its_stamps_is_timed_by_arrival_not_by_its_bad_offset(caplog):
+    """uav3's UTC 300 ms ahead: named and refused (clock_off).  Then its tracks lose time_unix_us (its GNSS time
+    gone): they were timed by the UTC - boot offset remembered from its stamps, the one the check had refused, with no
+    time sigma and no stamp left to refuse (in the fleet audit's run 13 confidently wrong points in the next 14 s,
+    NEES up to 127, and the rest unobservable).  That offset is dropped, said once, and its frames are timed by their
+    arrival: uav3 fuses again, honestly."""
+    rng = np.random.default_rng(11)
+    vehicles = [biased(v, rng) for v in (UAV1, UAV2, UAV3)]
+    fusion = new_fusion()
+
+    def ahead_then_none(name, t, obj):
+        if name == "uav3":
+            obj["time_unix_us"] = None if t >= 2.0 else obj["time_unix_us"] + 300_000
+
+    fly(fusion, vehicles, seconds(0.0, 2.0), rng, ahead_then_none)
+    assert fusion.counter["clock_off"] > 0
+    with caplog.at_level(logging.WARNING):
+        out = fly(fusion, vehicles, seconds(2.0, 5.0), rng, ahead_then_none)
+    assert fusion.counter["clock_memory_dropped"] == 1
+    assert [r.getMessage() for r in caplog.records if r.getMessage().startswith("clock_memory_dropped")]
+    late = [p for p in out if p["time_unix_us"] >= (T0_UNIX_S + 2.5) * 1e6]
+    assert all(nees(p) < NEES_MAX for p in late if p["observable"]), max(nees(p) for p in late if p["observable"])
+    assert sum(p["observable"] for p in late) > 0.9 * len(late)
+    assert {c["vehicle"]: c["time_source"] for c in late[-1]["vehicles"]}["uav3"] == "arrival"
