@@ -50,7 +50,8 @@ be at: :class:`~onboard.io.fleet_wire.StreamCheck`), ``time_sigma`` (a time sigm
 track's ``time_unix_sigma_us``, or what the clock check finds; the log line says which), ``sigma_below_floor`` (a
 line-of-sight sigma below :data:`~onboard.estimation.fleet.MIN_BEARING_SIGMA_RAD`), ``clock_off`` (a vehicle the
 clock check names, off the others by more than the pairing window: its rays could not pair and would move a target),
-``ray_name_clash`` (DEBUG: a vehicle name two vehicles share, below), ``ray_stale``, ``ray_out_of_order`` (a ray not
+``ray_name_clash`` (DEBUG: a vehicle name two vehicles share, below), ``ray_clock_unjudged`` (DEBUG: a stamped
+vehicle's ray before the clock check's verdict on it, at most ``ClockConsistency.judging_max_s``), ``ray_stale``, ``ray_out_of_order`` (a ray not
 newer than its object's last, among them a message the link reordered), ``duplicate`` (a seq heard again:
 redelivered or replayed; from a camera elsewhere it is a second vehicle's, ``camera_jump``), ``inbox_full`` (a flood
 beyond ``INBOX_MAX``), ``receive_error`` (a message that failed in a way no check above names: counted, the loop goes
@@ -303,6 +304,7 @@ class Fusion:
         self._clock_refused: set[str] = set()
         self._clock_judged_at = -math.inf
         self._clock_far: dict[str, float] = {}
+        self._clock_judged: frozenset[str] = frozenset()  # the vehicles the check had judged at that verdict
         self._stepped: dict[str, float] = {}  # vehicles whose UTC stepped (s, signed) and not judged since
         # the fleet frame's provenance: the vehicle whose ray set it (None: configured, or none yet), and whether
         # another vehicle's ray was accepted in it since (then it is the fleet's, and kept)
@@ -343,10 +345,13 @@ class Fusion:
         also names a vehicle whose link is slower by more than the tolerance (its latency floor, not its clock,
         differs), which would lose its rays for nothing."""
         # the verdict moves with the check's 10 s window: judged again every CLOCK_RECHECK_S, not on every ray
-        if not now_unix_s - self._clock_judged_at < CLOCK_RECHECK_S:
+        # and at once for a vehicle judged since: its rays waited for this verdict (ClockConsistency.judging)
+        fresh = vehicle in self._clock_judged or self.clock_check.judging(vehicle, now_unix_s)
+        if not (now_unix_s - self._clock_judged_at < CLOCK_RECHECK_S and fresh):
             self._clock_judged_at = now_unix_s
             self._clock_far = self.clock_check.errors_s(now_unix_s)
             floors = self.clock_check.floors_s(now_unix_s)
+            self._clock_judged = frozenset(floors)
             if len(floors) >= 2:  # judged again since its step: the check's verdict stands for it now
                 for v in [v for v in self._stepped if v in floors]:
                     del self._stepped[v]
@@ -489,6 +494,9 @@ class Fusion:
                 time_sigma_s = abs(off)
                 why = f"the clock check finds its time_unix_us {off * 1e3:+.0f} ms off the other vehicles'"
             off = None
+        if source == "vehicle" and self.clock_check.judging(vehicle, arrival_unix_s):  # (a clock off is named then)
+            self.counter.count("ray_clock_unjudged", f"{key}: its clock not judged yet", level=logging.DEBUG)
+            return
         try:
             ray = ray_from_track(TimedTrack(track, t_s, source, time_sigma_s), origin)
         except (InputError, ArithmeticError, ValueError, np.linalg.LinAlgError) as exc:

@@ -433,10 +433,13 @@ class ClockConsistency:
     :meth:`inconsistent` names the vehicles off the others by more than ``tolerance_s`` (with two judged, the one
     farther from the fusion's own clock); :meth:`errors_s` says by how much each named one is off."""
 
-    def __init__(self, window_s: float = 10.0, tolerance_s: float = 0.010, min_samples: int = 20) -> None:
+    def __init__(
+        self, window_s: float = 10.0, tolerance_s: float = 0.010, min_samples: int = 20, judging_max_s: float = 1.5
+    ) -> None:
         self.window_s = float(window_s)
         self.tolerance_s = float(tolerance_s)
         self.min_samples = int(min_samples)
+        self.judging_max_s = float(judging_max_s)  # how long a vehicle's rays wait for its verdict at most (judging)
         self._floor: dict[str, deque[tuple[float, float]]] = {}  # (arrival, lag), lags increasing: sliding min
         self._arrivals: dict[str, deque[float]] = {}
 
@@ -453,6 +456,20 @@ class ClockConsistency:
         """Drop ``vehicle``'s frames (a vehicle long silent)."""
         self._floor.pop(vehicle, None)
         self._arrivals.pop(vehicle, None)
+
+    def judging(self, vehicle: str, now_unix_s: float) -> bool:
+        """Whether ``vehicle``'s stamps are still too few to judge (fewer than ``min_samples`` in the window) and the
+        first of those in the window came less than ``judging_max_s`` before ``now_unix_s``: a vehicle that starts,
+        returns after a window's silence, or stepped.  Until it is judged a clock that is off is named by nothing, and
+        its rays paired at the wrong place with a time sigma of a fraction of a millisecond (a vehicle 0.3 s ahead from
+        its start: 6 fleet points up to NEES 111 in its first 20 frames), so the fusion holds them; ``judging_max_s``
+        bounds the wait for a vehicle that publishes too slowly ever to have ``min_samples`` in the window, which
+        stays unjudged as before."""
+        arrivals = self._arrivals.get(vehicle)
+        if not arrivals:
+            return False
+        self._trim(vehicle, now_unix_s)
+        return bool(arrivals) and len(arrivals) < self.min_samples and now_unix_s - arrivals[0] < self.judging_max_s
 
     def _trim(self, vehicle: str, now_unix_s: float) -> None:
         cutoff = now_unix_s - self.window_s

@@ -84,6 +84,7 @@ def truth_in(msg: dict, t0_unix_s: float = T0_UNIX_S) -> np.ndarray:
 
 def new_fusion(**kw) -> Fusion:
     counter = RejectCounter()
+    kw.setdefault("clock_check", ClockConsistency(judging_max_s=0.0))  # clock tests of their own: test_fuse_clock.py
     return Fusion(FleetTracker(FleetConfig(), NoiseModel(), counter), CommonClock(kw.pop("offsets", None)), **kw)
 
 
@@ -1168,7 +1169,8 @@ def test_a_vehicle_whose_elevation_is_1_deg_off_fuses_within_its_prior_and_is_na
     status says so (``ray_unpaired`` under ``events``) instead of counting nothing while nothing is fused."""
     args = build_parser().parse_args(["--vehicle-noise", uav2_prior] if uav2_prior else [])
     counter = RejectCounter()
-    fusion = Fusion(FleetTracker(FleetConfig(), noise_models(args), counter), CommonClock(), counter=counter)
+    tracker = FleetTracker(FleetConfig(), noise_models(args), counter)
+    fusion = Fusion(tracker, CommonClock(), counter=counter, clock_check=ClockConsistency(judging_max_s=0.0))
     off = SynthVehicle("uav2", UAV2.p0_ned_m, UAV2.v_ned_mps, attitude_error_rad=(0.0, np.radians(1.0), 0.0))
     rng = np.random.default_rng(2)
     fleet = []

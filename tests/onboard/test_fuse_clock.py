@@ -259,3 +259,29 @@ def test_a_vehicle_named_off_that_loses_its_stamps_is_timed_by_arrival_not_by_it
     assert all(nees(p) < NEES_MAX for p in late if p["observable"]), max(nees(p) for p in late if p["observable"])
     assert sum(p["observable"] for p in late) > 0.9 * len(late)
     assert {c["vehicle"]: c["time_source"] for c in late[-1]["vehicles"]}["uav3"] == "arrival"
+
+
+# --------------------------------------------------------------------------- a clock off from the first frame
+
+
+@pytest.mark.parametrize("ahead_ms", [150, 300])
+def test_a_clock_off_from_its_first_frame_is_never_fused_confidently_before_it_is_judged(ahead_ms):
+    """uav3's UTC ahead from its first frame: the clock check names it at its 20th frame, and before, its rays paired
+    at the wrong place with a time sigma of a fraction of a millisecond (300 ms: 6 fleet points up to NEES 111; 150
+    ms: 2, NEES 22).  A stamped vehicle's rays now wait for the check's verdict (at most 1.5 s): no fleet point is
+    beyond NEES 16.3 at any time, and the fleet track starts once the clocks are judged."""
+    rng = np.random.default_rng(3)
+    vehicles = [biased(v, rng) for v in (UAV1, UAV2, UAV3)]
+    fusion = new_fusion()
+
+    def ahead(name, t, obj):
+        if name == "uav3":
+            obj["time_unix_us"] += ahead_ms * 1000
+
+    fleet = fly(fusion, vehicles, seconds(0.0, 3.0), rng, ahead)
+    assert fleet, "no fleet track"
+    worst = max(nees(m) for m in fleet if m["observable"]) if any(m["observable"] for m in fleet) else 0.0
+    assert worst <= NEES_MAX, worst
+    first_s = min(m["time_unix_us"] / 1e6 - T0_UNIX_S for m in fleet)
+    assert 0.6 <= first_s <= 1.0, first_s  # the 20th frame's verdict, at 30 Hz
+    assert fusion.counter["ray_clock_unjudged"] >= 3 * 19
