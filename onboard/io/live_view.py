@@ -347,7 +347,8 @@ class LiveView:
     # ------------------------------------------------------------------ life cycle
 
     def start(self) -> None:
-        """Bind the server (an address in use raises :class:`InputError` naming it) and start the thread."""
+        """Bind the server (an address in use raises :class:`InputError` naming the port, its option and field) and
+        start the thread."""
         import foxglove
         from foxglove.channels import (
             FrameTransformChannel,
@@ -369,7 +370,15 @@ class LiveView:
                 message_backlog_size=CLIENT_BACKLOG_MESSAGES,
             )
         except Exception as exc:  # noqa: BLE001 - the SDK raises its own error types for a bind failure
-            raise InputError(f"live_view: cannot serve on {s.host}:{self._bind_port}: {exc}") from None
+            where = f"live_view.port (--live-view) {s.host}:{self._bind_port}"
+            if "os error 98" in str(exc) or "in use" in str(exc).lower():
+                # the SDK's words ("FoxgloveError: Failed to bind port: Address already in use (os error 98)") named
+                # neither the option nor what to do about it
+                raise InputError(
+                    f"{where}: port already in use (another daemon, replay or live view serving there?): stop it or "
+                    "give another port"
+                ) from None
+            raise InputError(f"{where}: cannot serve: {exc}") from None
 
         def json_channel(topic: str, schema: str):
             return foxglove.Channel(

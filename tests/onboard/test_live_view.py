@@ -97,6 +97,25 @@ def test_settings_refuse_a_bad_port():
         LiveView(LiveViewConfig(), port=70000)
 
 
+def test_a_port_in_use_is_one_line_naming_the_option_and_what_to_do():
+    import socket
+
+    from groundsim.io.ports import free_tcp_port
+
+    port = free_tcp_port()
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", port))
+        taken.listen()
+        lv = LiveView(LiveViewConfig(), port=port)
+        with pytest.raises(InputError) as err:
+            lv.start()
+    msg = str(err.value)
+    assert msg == (
+        f"live_view.port (--live-view) 127.0.0.1:{port}: port already in use (another daemon, replay or live view "
+        "serving there?): stop it or give another port"
+    )
+
+
 # --------------------------------------------------------------------------- never stalls: drop and count
 
 
