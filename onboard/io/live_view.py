@@ -421,8 +421,8 @@ class LiveView:
 
     def close(self, timeout_s: float = 2.0) -> None:
         """Stop the publisher thread, then the server, both within ``timeout_s``.  The SDK's ``stop`` waits for
-        every client's connection to close, which a client that stopped reading (its TCP window full) holds up
-        indefinitely: it runs on a thread of its own, and one still running at the deadline is left to end with
+        every client's connection to close, which a client that stopped reading (its TCP window full), or a TCP
+        connection that never completed its WebSocket handshake, holds up indefinitely: it runs on a thread of its own, and one still running at the deadline is left to end with
         the process (one WARNING), so that the daemon's shutdown keeps its budget."""
         deadline_s = time.monotonic() + timeout_s
         stop_and_join(self._cond, self._stop, self._thread, timeout_s)
@@ -437,8 +437,12 @@ class LiveView:
         # a floor: the publisher's join may have used the whole budget, and a server that stops at once is no warning
         stopper.join(max(deadline_s - time.monotonic(), STOP_FLOOR_S))
         if stopper.is_alive():
+            # the SDK's stop waits on every connection, the ones still in their handshake too: a TCP client that
+            # never sends a WebSocket upgrade (a port scan, an HTTP probe, a half-sent request) is held open with no
+            # timeout, and stalled the stop as a viewer that stopped reading does
             log.warning(
-                "live view: the server did not stop within %.1f s (a client not reading?); left to end with the process",
+                "live view: the server did not stop within %.1f s (a client not reading, or a TCP connection that never "
+                "completed its WebSocket handshake); left to end with the process",
                 timeout_s,
             )
 

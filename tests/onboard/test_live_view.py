@@ -9,6 +9,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import logging
 import os
 import signal
 import struct
@@ -114,6 +115,18 @@ def test_a_port_in_use_is_one_line_naming_the_option_and_what_to_do():
         f"live_view.port (--live-view) 127.0.0.1:{port}: port already in use (another daemon, replay or live view "
         "serving there?): stop it or give another port"
     )
+
+
+def test_a_connection_without_a_handshake_held_at_close_is_named_in_the_warning(caplog):
+    import socket
+
+    lv = LiveView(LiveViewConfig(), port=0)
+    lv.start()
+    # a raw TCP client that sends nothing (a port scan, an HTTP probe): the SDK holds it with no handshake timeout
+    with socket.create_connection(("127.0.0.1", lv.port)), caplog.at_level(logging.WARNING, "onboard.io.live_view"):
+        lv.close(timeout_s=0.3)
+    (warning,) = [r.getMessage() for r in caplog.records if r.name == "onboard.io.live_view"]
+    assert "did not stop within 0.3 s" in warning and "never completed its WebSocket handshake" in warning
 
 
 # --------------------------------------------------------------------------- never stalls: drop and count
