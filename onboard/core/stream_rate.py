@@ -14,7 +14,7 @@ from __future__ import annotations
 from collections import deque
 from dataclasses import dataclass
 
-__all__ = ["RATE_WINDOW_S", "MIN_SPAN_S", "REASK_S", "StreamRate", "StreamRates"]
+__all__ = ["CLEAR_FRACTION", "RATE_WINDOW_S", "MIN_SPAN_S", "REASK_S", "SLOW_FRACTION", "StreamRate", "StreamRates"]
 
 #: the rate is measured over the last this many seconds (at least :data:`MIN_SPAN_S` of looks)
 RATE_WINDOW_S = 5.0
@@ -22,6 +22,10 @@ MIN_SPAN_S = 1.0
 #: a stream below this fraction of its requested rate for :data:`SLOW_PERSIST_S` after its rate was confirmed is
 #: slow (what a capped autopilot looks like)
 SLOW_FRACTION = 0.5
+#: a slow stream is slow until it is above this fraction of its requested rate: an autopilot capping a stream at
+#: half its request measures on both sides of SLOW_FRACTION from one look to the next, and the warning came and went
+#: every second
+CLEAR_FRACTION = 0.55
 SLOW_PERSIST_S = 3.0
 #: a slow stream's rate is asked again at most this often (:mod:`onboard.io.mavlink_rates`; here, where the
 #: watchdog's advice that says so reads it too)
@@ -57,6 +61,7 @@ class StreamRates:
         self.counts: dict[int, int] = {mid: 0 for mid in self.requested}
         self._confirmed_s: dict[int, float] = {}
         self._looks: deque[tuple[float, dict[int, int]]] = deque()
+        self._slow: set[int] = set()  # the streams the last slow() found slow (they clear at CLEAR_FRACTION)
 
     def count(self, msg_id: int) -> None:
         """One message of a requested stream taken (others are ignored)."""
@@ -67,11 +72,13 @@ class StreamRates:
         """Its rate request was ACCEPTED at ``now_s``: the measurement judged from here."""
         self._confirmed_s[msg_id] = float(now_s)
         self._looks.clear()  # the rate before the request is not the rate asked for
+        self._slow.discard(msg_id)
 
     def reset(self) -> None:
         """The requests are sent again (link lost, autopilot rebooted): nothing confirmed, nothing measured."""
         self._confirmed_s.clear()
         self._looks.clear()
+        self._slow.clear()
 
     def rates(self, now_s: float) -> list[StreamRate]:
         """Each requested stream's rate over the last :data:`RATE_WINDOW_S` (this call is a look)."""
@@ -90,7 +97,8 @@ class StreamRates:
         return out
 
     def slow(self, now_s: float, rates: list[StreamRate]) -> list[StreamRate]:
-        """The streams of ``rates`` (just measured) below :data:`SLOW_FRACTION` of their requested rate, over a window
+        """The streams of ``rates`` (just measured) below :data:`SLOW_FRACTION` of their requested rate (one found slow
+        the time before: below :data:`CLEAR_FRACTION`), over a window
         that began after their rate was confirmed, :data:`SLOW_PERSIST_S` or more ago.  None while no requested stream
         brought a message over the last :data:`MIN_SPAN_S` (since the newest look at least that old): the telemetry
         stopped, which the link's own warnings say (its rates over the window, the silence included, had read as an
@@ -101,12 +109,14 @@ class StreamRates:
         before = next((counts for t_s, counts in reversed(self._looks) if now_s - t_s >= MIN_SPAN_S), None)
         if before is not None and all(self.counts[mid] == before.get(mid) for mid in self.counts):
             return []
-        return [
+        slow = [
             r
             for r in rates
             if r.measured_hz is not None
             and r.confirmed_s is not None
             and t0 >= r.confirmed_s
             and now_s - r.confirmed_s >= SLOW_PERSIST_S
-            and r.measured_hz < SLOW_FRACTION * r.requested_hz
+            and r.measured_hz < (CLEAR_FRACTION if r.msg_id in self._slow else SLOW_FRACTION) * r.requested_hz
         ]
+        self._slow = {r.msg_id for r in slow}
+        return slow

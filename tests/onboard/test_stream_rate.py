@@ -93,3 +93,23 @@ def test_slow_when_looked_at_twice_in_a_row():
     m.rates(t)  # the status's look
     t_watch = t + 1e-6
     assert [r.msg_id for r in m.slow(t_watch, m.rates(t_watch))] == [POS]
+
+
+def test_a_stream_at_half_its_rate_is_slow_until_it_is_clearly_faster():
+    """An autopilot that caps a 100 Hz request at 50 Hz measures 49.8-50.0 Hz: below half, then not, every look,
+    and the warning came and went every second (33 log lines in 75 s, a status at each change).  Slow once, a
+    stream stays slow until it is above CLEAR_FRACTION of its requested rate."""
+    from onboard.core.stream_rate import CLEAR_FRACTION, SLOW_FRACTION
+
+    m = _meter()
+    m.confirmed(ATT, 0.0)
+    m.confirmed(POS, 0.0)
+    t = _feed(m, 0.0, int(SLOW_PERSIST_S) + 2, 49, 25)
+    assert [r.msg_id for r in m.slow(t, m.rates(t))] == [ATT]
+    for hz in (51, 49, 51, 52):  # around half: still slow
+        t = _feed(m, t, 6, hz, 25)
+        assert [r.msg_id for r in m.slow(t, m.rates(t))] == [ATT], hz
+    t = _feed(m, t, 6, int(CLEAR_FRACTION * 100) + 1, 25)
+    assert m.slow(t, m.rates(t)) == []
+    t = _feed(m, t, 6, int(SLOW_FRACTION * 100) + 1, 25)  # above half: not slow again from there
+    assert m.slow(t, m.rates(t)) == []
