@@ -735,6 +735,12 @@ class OnboardService:
             rotation=(self.pose.newest_rotation_time_boot_us(), self.mount.gimballed),
         )
         self.watchdog.autopilot_reboots(now, self.pose.reboots)
+        if self.session is not None and self.config.zenoh.connect:
+            try:  # (two calls into zenoh every WATCH_PERIOD_S)
+                linked = len(list(self.session.info.routers_zid())) + len(list(self.session.info.peers_zid()))
+            except Exception:  # noqa: BLE001 - informational: not known is no warning
+                linked = None
+            self.watchdog.zenoh_links(now, tuple(self.config.zenoh.connect), linked)
         self.watchdog.components(
             now,
             estimator_restarts=int(getattr(self.estimator, "restarts", 0)),

@@ -8,6 +8,10 @@ seconds, its own clock) and what it saw; tests feed it a fake clock.  Each condi
     message names the zenoh key subscribed to and the session's endpoints, mode and scouting.
 ``no_mavlink``
     No MAVLink message for ``input_timeout_s``; the message names the connection string.
+``zenoh_unconnected``
+    The zenoh session dials endpoints (``zenoh.connect``) and has had no router and no peer for ``input_timeout_s``:
+    what the daemon publishes reaches no one there (a router killed: the daemon went on tracking in silence while the
+    ground saw nothing), and a camera behind it sends nothing.  Cleared by the first router or peer.
 ``frame_size``
     A frame whose size is not the configured camera's (refused as ``frame_dims_mismatch``); the
     message names both sizes.  Cleared by a frame of the right size once ``FRAME_SIZE_CLEAR_S`` (1 s)
@@ -324,6 +328,7 @@ class Watchdog:
         self._log = logger or _log
         self._last_frame_s = float(started_s)
         self._last_mavlink_s = float(started_s)
+        self._zenoh_alone_s: float | None = None  # since when the session has had no router or peer (zenoh_links)
         self._estimator_restarts = _CountGrowth(ESTIMATOR_RESTART_CLEAR_S)
         self._autopilot_reboots = _CountGrowth(AUTOPILOT_REBOOT_CLEAR_S)
         self._gnss_losses: collections.deque[tuple[float, int]] = collections.deque()  # (now_s, fix losses so far)
@@ -743,6 +748,21 @@ class Watchdog:
             f"every {REASK_S:g} s while slow; MAVProxy: --streamrate=-1); poses are interpolated over wider gaps. Check the "
             "autopilot's stream rate limits and the link (status link.streams)",
         )
+
+    def zenoh_links(self, now_s: float, connect: tuple[str, ...], linked: int | None) -> None:
+        """``linked``: the zenoh session's routers and peers now (None: not known), ``connect`` the endpoints it
+        dials: none linked for ``input_timeout_s`` is ``zenoh_unconnected``, naming them (module docstring)."""
+        if not connect or linked is None or linked > 0:
+            self._zenoh_alone_s = None
+            return self._clear("zenoh_unconnected")
+        since = self._zenoh_alone_s = now_s if self._zenoh_alone_s is None else self._zenoh_alone_s
+        if now_s - since >= self.input_timeout_s:
+            self._raise(
+                "zenoh_unconnected",
+                f"no zenoh router or peer for {now_s - since:.0f} s (connect {', '.join(connect)}): the tracks, objects "
+                "and status published reach no one, and no frame comes through there; zenoh dials again by itself: "
+                "check the router or peer at that endpoint (deploy/README.md)",
+            )
 
     def autopilot_duplicate(self, now_s: float, senders) -> None:
         """The second senders of the autopilot's identity heard lately (a list of

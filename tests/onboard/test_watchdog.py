@@ -539,3 +539,25 @@ def test_gnss_dropout_says_the_samples_arrive_refused_when_the_pose_buffer_rejec
     wd.navigation(102.0, 0.02, rejected={"position_jump": 1, "position_alt_out_of_range": 11})
     wd.navigation(103.0, 0.5, rejected={"position_jump": 1, "position_alt_out_of_range": 11})  # a silent stream
     assert "refuses" not in wd.active[0].message and "check the GNSS" in wd.active[0].message
+
+
+def test_a_session_that_dials_and_has_no_router_or_peer_is_warned_after_5_s_and_cleared_by_one(caplog):
+    """The router the daemon dials killed mid-flight: the daemon tracked on, its tracks reaching no one, and nothing
+    said so (the live-view and zenoh audit)."""
+    wd = _wd()
+    connect = ("tcp/10.0.0.9:7447",)
+    with caplog.at_level(logging.INFO, logger="onboard.app.watchdog"):
+        wd.zenoh_links(100.0, connect, 1)
+        for i in range(49):  # 4.8 s with none: not yet
+            wd.zenoh_links(101.0 + 0.1 * i, connect, 0)
+        assert wd.active == ()
+        wd.zenoh_links(106.0, connect, 0)
+        (msg,) = _warnings(caplog)
+        assert msg.startswith("zenoh_unconnected: no zenoh router or peer for 5 s (connect tcp/10.0.0.9:7447)")
+        wd.zenoh_links(107.0, connect, 0)
+        assert len(_warnings(caplog)) == 1 and [w.code for w in wd.active] == ["zenoh_unconnected"]
+        wd.zenoh_links(107.5, connect, 1)
+        assert wd.active == ()
+        wd.zenoh_links(108.0, connect, None)  # not known: no warning, ever
+        wd.zenoh_links(120.0, (), 0)  # listening only: peers come when they will (no_frames says it)
+        assert wd.active == ()
