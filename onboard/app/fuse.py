@@ -345,8 +345,10 @@ class Fusion:
         also names a vehicle whose link is slower by more than the tolerance (its latency floor, not its clock,
         differs), which would lose its rays for nothing."""
         # the verdict moves with the check's 10 s window: judged again every CLOCK_RECHECK_S, not on every ray
-        # and at once for a vehicle judged since: its rays waited for this verdict (ClockConsistency.judging)
-        fresh = vehicle in self._clock_judged or self.clock_check.judging(vehicle, now_unix_s)
+        # and at once for a vehicle judged since: its rays waited for this verdict (ClockConsistency.judging).  Not
+        # for one the check cannot judge (too slow, or its stamps stopped and its offset is remembered): each of its
+        # rays made the verdict over every vehicle again
+        fresh = vehicle in self._clock_judged or not self.clock_check.judged(vehicle, now_unix_s)
         if not (now_unix_s - self._clock_judged_at < CLOCK_RECHECK_S and fresh):
             self._clock_judged_at = now_unix_s
             self._clock_far = self.clock_check.errors_s(now_unix_s)

@@ -471,6 +471,14 @@ class ClockConsistency:
         self._trim(vehicle, now_unix_s)
         return bool(arrivals) and len(arrivals) < self.min_samples and now_unix_s - arrivals[0] < self.judging_max_s
 
+    def judged(self, vehicle: str, now_unix_s: float) -> bool:
+        """Whether ``vehicle`` has ``min_samples`` stamps in the window ending at ``now_unix_s`` (:meth:`floors_s`
+        names it), without a pass over the other vehicles."""
+        if not self._arrivals.get(vehicle):
+            return False
+        self._trim(vehicle, now_unix_s)
+        return len(self._arrivals[vehicle]) >= self.min_samples and bool(self._floor[vehicle])
+
     def _trim(self, vehicle: str, now_unix_s: float) -> None:
         cutoff = now_unix_s - self.window_s
         floor, arrivals = self._floor[vehicle], self._arrivals[vehicle]

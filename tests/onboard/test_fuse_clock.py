@@ -285,3 +285,27 @@ def test_a_clock_off_from_its_first_frame_is_never_fused_confidently_before_it_i
     first_s = min(m["time_unix_us"] / 1e6 - T0_UNIX_S for m in fleet)
     assert 0.6 <= first_s <= 1.0, first_s  # the 20th frame's verdict, at 30 Hz
     assert fusion.counter["ray_clock_unjudged"] >= 3 * 19
+
+
+# --------------------------------------------------------------------------- the verdict's cost per ray
+
+
+def test_a_vehicle_the_check_cannot_judge_does_not_have_the_verdict_made_again_for_each_of_its_rays():
+    """uav3's stamps stop after 2 s: its tracks go on timed by the offset remembered from them, and once its stamps
+    have left the check's 10 s window it is neither judged nor being judged.  The verdict over every vehicle is made
+    every CLOCK_RECHECK_S (0.1 s), and at once only for a vehicle the check has judged since the last one: not again
+    for each of uav3's rays (30 a second, each a pass over every vehicle's window)."""
+    rng = np.random.default_rng(5)
+    vehicles = [biased(v, rng) for v in (UAV1, UAV2, UAV3)]
+    fusion = new_fusion()
+
+    def stamps_stop(name, t, obj):
+        if name == "uav3" and t >= 2.0:
+            obj["time_unix_us"] = None
+
+    fly(fusion, vehicles, seconds(0.0, 12.5), rng, stamps_stop)
+    verdicts = []
+    errors_s = fusion.clock_check.errors_s
+    fusion.clock_check.errors_s = lambda now_unix_s: verdicts.append(now_unix_s) or errors_s(now_unix_s)
+    fly(fusion, vehicles, seconds(12.5, 14.5), rng, stamps_stop)
+    assert len(verdicts) <= 2.0 / 0.1 + 2, len(verdicts)  # one per CLOCK_RECHECK_S, not one per uav3 ray (60)
