@@ -341,8 +341,9 @@ class FramePipeline:
     @property
     def last_withheld(self) -> tuple[str, ...]:
         """The codes that withheld the last frame's line of sight and 3-D position (:attr:`withheld_because` as that
-        frame was processed; empty: published, or the frame was refused before it got that far).  Recorded with the
-        frame, so that a replay, which has neither the daemon's watchdog nor its links, withholds the same frames."""
+        frame was processed; empty: published; a frame refused before that step: the codes in force as it came).
+        Recorded with the frame, so that a replay, which has neither the daemon's watchdog nor its links, withholds
+        the same frames."""
         return self._last_withheld
 
     @property
@@ -477,7 +478,7 @@ class FramePipeline:
     def process(self, frame: IrFrame, received_mono_ns: int | None = None) -> Track:
         """One frame -> its :class:`Track`; raises :class:`FrameRejected` (counted) for a refused frame."""
         t0 = self._clock_ns()
-        self._last_withheld = ()
+        self._last_withheld = self._withholding.codes  # a frame refused before its own decision: the codes in force
         if not isinstance(frame, IrFrame):
             self._refuse("field", f"expected an IrFrame, got {type(frame).__name__}")
         K = self.intrinsics

@@ -862,3 +862,18 @@ def test_a_gnss_gap_keeps_the_line_of_sight_and_coasts_the_3d_estimate_without_f
     n_add = sum(1 for c in rig.est.calls if c[0] == "add")
     tr = rig.step(91)
     assert rig.pipe.last_position_age_s < 0.1 and sum(1 for c in rig.est.calls if c[0] == "add") == n_add + 1
+
+
+def test_a_frame_refused_before_the_withholding_step_records_the_codes_in_force():
+    """What withheld a frame goes into its recording (irtrack.frame_input/1's withheld_because), which a replay sets
+    before the frame: a frame refused before the withholding step had recorded none while the daemon withheld, so a
+    replay that took it (a daemon-side failure it does not meet) published what the flight withheld."""
+    rig = Rig()
+    rig.pipe.withheld_because = ("camera_mismatch",)
+    small = IrFrame(seq=0, time_boot_us=rig.scene.t_us(0), pixels=np.zeros((256, 320), np.uint8))
+    with pytest.raises(FrameRejected):
+        rig.pipe.process(small)
+    assert rig.pipe.last_withheld == ("camera_mismatch",)
+    rig.pipe.withheld_because = ()
+    rig.pipe.process_payload(_good(rig, 1))
+    assert rig.pipe.last_withheld == ()
