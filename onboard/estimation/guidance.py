@@ -700,9 +700,12 @@ _MODE_FLAG_ARMED = 128
 #: after sending ends (a stop, the advice over, the daemon stopping), zero-velocity setpoints for this long (then
 #: silence: the autopilot's own timeout)
 BRAKE_S = 1.0
-#: why the gate has no pose to judge: its pose is the one each camera frame got
+#: GPS_RAW_INT older than this after one was heard stops the setpoints too: PX4 stops the message when its receiver
+#: is gone (ArduPilot sends NO_GPS), and a fix nobody reports is no fix known (autopilots send it at 1-5 Hz)
+GNSS_STALE_S = 5.0
 #: an autopilot heartbeat (1 Hz) older than this is late: the link, not the camera, is named when the poses stop
 HEARTBEAT_LATE_S = 1.5
+#: why the gate has no pose to judge: its pose is the one each camera frame got
 _NO_FRAME_POSE = "no camera frame with a measured vehicle position (no frames, none with a pose, or dead reckoning)"
 
 
@@ -729,7 +732,7 @@ class SetpointGate:
     of the autopilot's heartbeat periods, sooner than the link's own ``mavlink.heartbeat_timeout_s``), the heartbeat
     reports ``accept_autopilot`` / ``accept_custom_mode`` (armed when ``require_armed``), the vehicle is inside the
     geofence box and the altitude band, not faster than ``max_speed_mps + speed_margin_mps``, its pose (the newest
-    camera frame's) newer than ``pose_timeout_s``, its GNSS not below a 3-D fix after one (GPS_RAW_INT: the autopilot
+    camera frame's) newer than ``pose_timeout_s``, its GNSS not below a 3-D fix after one nor its GPS_RAW_INT stopped for :data:`GNSS_STALE_S` (the autopilot
     then dead-reckons the positions it goes on reporting, and the box and band are checked on a drifting position;
     a vehicle that never had a 3-D fix is positioned otherwise and not judged by it) and the advice still valid.  A
     limit reached or the link lost while sending stops it (``stopped``, latched, ``why`` says which): for
@@ -877,6 +880,8 @@ class SetpointGate:
             self.state, self.why = "waiting", _NO_FRAME_POSE
             return SetpointDecision(False, None, self.state, self.why)
         limit = self._limit(np.asarray(pose[1], float), np.asarray(pose[2], float))
+        if not limit and gnss is not None and not now_s - gnss.received_s <= GNSS_STALE_S:
+            limit = f"gnss: no GPS_RAW_INT for {now_s - gnss.received_s:.1f} s after one: its receiver may be gone"
         if not limit and gnss is not None and not gnss.has_3d_fix and gnss.fix_losses:
             # GLOBAL_POSITION_INT goes on through the outage, dead-reckoned by the autopilot: fresh, but drifting
             limit = (

@@ -772,16 +772,38 @@ def test_a_gnss_fix_lost_while_commanding_stops_the_setpoints():
 
     now = [100.0]  # the tap hands the gate the link's GPS_RAW_INT
     tap, link, sent = _in_loop_tap(now)
-    link.gnss = fix3
+    link.gnss = fix3 = GnssState.updated(None, now[0], 3)
     tap._pose = (now[0], p, np.zeros(3))
     tap._advice = (now[0] + 3.0, np.array([1.0, 0.0, 0.0]), None)
     link.autopilot_mode = GUIDED
     assert tap.setpoint_step(now[0], link) and sent[-1][0] == 1.0
-    link.gnss = lost
+    link.gnss = GnssState.updated(fix3, now[0] + 0.2, 1)
     now[0] += 0.25
     tap._pose = (now[0], p, np.zeros(3))
     assert tap.setpoint_step(now[0], link) and not sent[-1].any()
     assert tap.status()["setpoints"]["why"].startswith("gnss: no_fix")
+
+
+def test_a_gnss_report_that_stops_after_one_stops_the_setpoints():
+    """PX4 stops GPS_RAW_INT when its receiver is gone, and GLOBAL_POSITION_INT goes on, dead-reckoned: the last
+    report said a 3-D fix, and the gate flew on it.  A report older than GNSS_STALE_S stops, latched, as a fix lost
+    does; one at the autopilot's rate (1-5 Hz) does not."""
+    from onboard.core.gnss import GnssState
+    from onboard.estimation.guidance import GNSS_STALE_S, SetpointGate
+
+    gate = SetpointGate(build(GuidanceConfig, {"enabled": True}))
+    p = np.array([0.0, 0.0, -60.0])
+    advice = (100.0, np.array([3.0, 0.0, 0.0]))
+    fix3 = GnssState.updated(None, 0.0, 3)
+
+    def step(now, mode=GUIDED):
+        return gate.step(now, link_connected=True, mode=mode, pose=(now, p, np.zeros(3)), advice=advice, gnss=fix3)
+
+    step(0.0, LOITER)
+    assert step(0.1).send and step(GNSS_STALE_S).send and gate.state == "sending"
+    d = step(GNSS_STALE_S + 0.5)
+    assert d.send and not d.v_ned_mps.any() and d.state == "stopped"  # the brake
+    assert d.why.startswith("gnss: no GPS_RAW_INT for 5.5 s after one") and gate.stops == {"gnss": 1}
 
 
 def test_poses_lost_with_the_heartbeat_late_name_the_link_not_only_the_camera():
