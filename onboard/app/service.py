@@ -204,6 +204,8 @@ class OnboardService:
         )
         self._selection_results: collections.deque = collections.deque()  # TrackResults from the pipeline thread
         self.session: Any = None
+        # the session's routers and peers at the last watch (None: not known), for the status's zenoh section
+        self._zenoh_linked: tuple[int | None, int | None] = (None, None)
         self._sub = None
         self._track_pub = None
         self._objects_pub = None
@@ -735,12 +737,18 @@ class OnboardService:
             rotation=(self.pose.newest_rotation_time_boot_us(), self.mount.gimballed),
         )
         self.watchdog.autopilot_reboots(now, self.pose.reboots)
-        if self.session is not None and self.config.zenoh.connect:
+        if self.session is not None:
             try:  # (two calls into zenoh every WATCH_PERIOD_S)
-                linked = len(list(self.session.info.routers_zid())) + len(list(self.session.info.peers_zid()))
+                self._zenoh_linked = (
+                    len(list(self.session.info.routers_zid())),
+                    len(list(self.session.info.peers_zid())),
+                )
             except Exception:  # noqa: BLE001 - informational: not known is no warning
-                linked = None
-            self.watchdog.zenoh_links(now, tuple(self.config.zenoh.connect), linked)
+                self._zenoh_linked = (None, None)
+            if self.config.zenoh.connect:
+                routers, peers = self._zenoh_linked
+                linked = None if routers is None or peers is None else routers + peers
+                self.watchdog.zenoh_links(now, tuple(self.config.zenoh.connect), linked)
         self.watchdog.components(
             now,
             estimator_restarts=int(getattr(self.estimator, "restarts", 0)),
@@ -902,6 +910,14 @@ class OnboardService:
             camera_time_offset=time_offset_section(self.pipeline, self.config),
         )
         status["utc"] = self.utc.status()  # boot clock -> UTC (onboard.core.utc_clock)
+        if self.session is not None:
+            routers, peers = self._zenoh_linked
+            status["zenoh"] = {
+                "connect": list(self.config.zenoh.connect),
+                "listen": list(self.config.zenoh.listen),
+                "routers": routers,
+                "peers": peers,
+            }
         if self.camera is not None:
             status["camera"] = camera_section(self.camera, self.config, self.pipeline)
         for tap in self.taps:

@@ -240,6 +240,11 @@ _GUIDANCE = _section(
         ),
     },
 )
+_ZENOH = _section(
+    "the zenoh session (onboard.app.service): the endpoints it dials and listens on, as configured, and the routers "
+    "and peers it has now (counted every 0.5 s; null: not known yet or zenoh did not say)",
+    {"connect": _STRS, "listen": _STRS, "routers": _INT_N, "peers": _INT_N},
+)
 
 #: Every top-level key :func:`build_status` writes, in its order, with its JSON Schema (its docstring says what each
 #: holds); a test holds :func:`build_status` to it key for key
@@ -354,10 +359,11 @@ STATUS_JSON_KEYS: tuple[tuple[str, dict[str, Any]], ...] = (
 )
 
 #: The sections the daemon's service adds to :func:`build_status`'s object (onboard.app.service ``status``):
-#: ``utc`` always; ``camera`` with the MAVLink camera; each output tap's own (``video``, ``record``, ``live_view``,
-#: ``guidance``) when configured
+#: ``utc`` always; ``zenoh`` once its session is open; ``camera`` with the MAVLink camera; each output tap's own
+#: (``video``, ``record``, ``live_view``, ``guidance``) when configured
 STATUS_SECTION_KEYS: tuple[tuple[str, dict[str, Any], bool], ...] = (
     ("utc", _UTC, True),
+    ("zenoh", _ZENOH, False),
     ("camera", _CAMERA, False),
     ("video", _VIDEO, False),
     ("record", _RECORD, False),

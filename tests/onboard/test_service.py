@@ -546,6 +546,9 @@ def test_daemon_end_to_end(tmp_path, daemon_env):
         assert st["frames"]["rejected"] >= 24 and st["frames"]["processed"] >= 20
         assert st["frames"]["in"] >= st["frames"]["processed"] + st["frames"]["rejected"]
         assert st["link"]["state"] == "connected" and st["link"]["autopilot_sysid"] == 1
+        # the session as configured, and the one peer it has: this test's session (no router on this loopback)
+        assert st["zenoh"]["connect"] == [f"tcp/127.0.0.1:{zport}"]
+        assert (st["zenoh"]["routers"], st["zenoh"]["peers"]) == (0, 1)
         assert st["processing_ms"]["n"] > 0 and st["processing_ms"]["p50"] > 0
         assert st["latency_ms"]["p50"] is not None and st["cpu"]["share"] is not None
         # what the daemon got (/proc/self/stat + its worker) from the second status on
