@@ -880,7 +880,9 @@ class SetpointGate:
             self.state, self.why = "waiting", _NO_FRAME_POSE
             return SetpointDecision(False, None, self.state, self.why)
         limit = self._limit(np.asarray(pose[1], float), np.asarray(pose[2], float))
-        if not limit and gnss is not None and not now_s - gnss.received_s <= GNSS_STALE_S:
+        # (a vehicle that never reported a 3-D fix is positioned otherwise: its GNSS going quiet says nothing)
+        had_3d_fix = gnss is not None and (gnss.has_3d_fix or gnss.fix_losses > 0)
+        if not limit and gnss is not None and had_3d_fix and not now_s - gnss.received_s <= GNSS_STALE_S:
             limit = f"gnss: no GPS_RAW_INT for {now_s - gnss.received_s:.1f} s after one: its receiver may be gone"
         if not limit and gnss is not None and not gnss.has_3d_fix and gnss.fix_losses:
             # GLOBAL_POSITION_INT goes on through the outage, dead-reckoned by the autopilot: fresh, but drifting

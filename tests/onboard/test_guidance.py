@@ -1045,3 +1045,24 @@ def test_an_advice_ended_by_withheld_geometry_says_so_not_target_lost():
     )
     tap.on_frame(None, FrameResult(0, True, _pose(), withheld, None))
     assert tap._advice is None and tap.status()["setpoints"]["advice_ends"] == {"geometry_withheld": 1}
+
+
+def test_a_gnss_report_that_stops_on_a_vehicle_that_never_had_a_3d_fix_does_not_stop_the_setpoints():
+    """A vehicle positioned otherwise (VIO, beacons) whose GPS_RAW_INT never said a 3-D fix is not judged by its GNSS
+    (SetpointGate's docstring, deploy/README.md, docs/design.md): its receiver going quiet says nothing of the
+    position it flies on.  The staleness stop judged it all the same, and stopped it 5 s after its last no-fix report."""
+    from onboard.core.gnss import GnssState
+    from onboard.estimation.guidance import GNSS_STALE_S, SetpointGate
+
+    gate = SetpointGate(build(GuidanceConfig, {"enabled": True}))
+    p = np.array([0.0, 0.0, -60.0])
+    advice = (100.0, np.array([3.0, 0.0, 0.0]))
+    never = GnssState.updated(GnssState.updated(None, 0.0, 0), 0.0, 1)  # no 3-D fix ever, then no more reports
+
+    def step(now, mode=GUIDED):
+        return gate.step(now, link_connected=True, mode=mode, pose=(now, p, np.zeros(3)), advice=advice, gnss=never)
+
+    step(0.0, LOITER)
+    assert step(0.1).send
+    d = step(GNSS_STALE_S + 0.5)
+    assert d.send and d.v_ned_mps.any() and gate.state == "sending", d.why
