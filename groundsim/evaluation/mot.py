@@ -46,6 +46,7 @@ __all__ = [
     "tracker_positions",
     "unscorable_objects",
     "nearest_within",
+    "object_timeline",
     "format_perception",
     "format_mot_scores",
 ]
@@ -373,3 +374,49 @@ def format_mot_scores(scores: dict[str, dict]) -> str:
             f" {m['IDSW']} |"
         )
     return "\n".join(lines)
+
+
+def _mot_centres(text: str, gt: bool) -> dict[int, dict[int, tuple[float, float, bool]]]:
+    """frame -> {id: (u, v, visible)} of MOT lines (``frame,id,x,y,w,h,...``; x, y 1-based): the box centres in the
+    chain's pixels; ``visible`` gt's 7th column (1), always True for a tracker's line.  Blank lines are skipped."""
+    out: dict[int, dict[int, tuple[float, float, bool]]] = {}
+    for line in text.splitlines():
+        if not line.strip():
+            continue
+        f = line.split(",")
+        frame, oid = int(f[0]), int(f[1])
+        x, y, w, h = (float(c) for c in f[2:6])
+        visible = not gt or f[6].strip() == "1"
+        out.setdefault(frame, {})[oid] = (x - 1.0 + w / 2.0, y - 1.0 + h / 2.0, visible)
+    return out
+
+
+def object_timeline(gt_text: str, tracker_text: str, radius_px: float = MATCH_PX) -> dict:
+    """Who was tracked on which frame, from a run's MOT files (gt.txt and the tracker's file, the module docstring's
+    layout): ``{"objects": {gt id: [(frame, visible, tracked id or None), ...]}, "false": {tracked id: [frame,
+    ...]}}``.  Each frame's objects (visible or hidden) and tracked ids are paired one to one, nearest first, within
+    ``radius_px`` (a coasting track on a hidden object is right, as :class:`PerceptionScore` counts it); a tracked id
+    paired with no object on a frame is a false one there."""
+    gt, trk = _mot_centres(gt_text, True), _mot_centres(tracker_text, False)
+    objects: dict[int, list] = {}
+    false: dict[int, list[int]] = {}
+    for frame in sorted(set(gt) | set(trk)):
+        g, t = gt.get(frame, {}), trk.get(frame, {})
+        pairs = sorted(
+            (math.hypot(gu - tu, gv - tv), gid, tid)
+            for gid, (gu, gv, _) in g.items()
+            for tid, (tu, tv, _) in t.items()
+            if math.hypot(gu - tu, gv - tv) <= radius_px
+        )
+        matched: dict[int, int] = {}
+        taken: set[int] = set()
+        for _, gid, tid in pairs:
+            if gid not in matched and tid not in taken:
+                matched[gid] = tid
+                taken.add(tid)
+        for gid, (_, _, visible) in g.items():
+            objects.setdefault(gid, []).append((frame, visible, matched.get(gid)))
+        for tid in t:
+            if tid not in taken:
+                false.setdefault(tid, []).append(frame)
+    return {"objects": dict(sorted(objects.items())), "false": dict(sorted(false.items()))}

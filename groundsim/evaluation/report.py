@@ -61,7 +61,7 @@ REFERENCE_PX03 = {"P1": (0.34, 0.85), "P2": (0.43, 1.5), "P3": (6.7, 6.1)}
 SCHEMA = "irtrack.eval/1"
 RATIO_LIMIT = 1.5  # the goal: the image chain within this factor of perfect centroids
 BASELINE_FAIL_PCT = 5.0  # a perfect-centroid baseline worse than this (err / range) failed: no ratio verdict on it
-EVAL_PLOTS = ("trajectory", "error", "frame")  # <label>_<plot>.png of write_eval_report
+EVAL_PLOTS = ("trajectory", "error", "frame", "objects")  # <label>_<plot>.png of write_eval_report
 EVAL_TUM_FILES = ("truth.tum", "estimate.tum", "estimate_perfect.tum")  # in <label>/seed<N>/
 
 
@@ -333,7 +333,7 @@ def clear_eval_report(out_dir) -> None:
 
     Only this report's own names go: ``report.json``, ``report.md``, ``performance.png``, the files the earlier
     report.json lists, and for every label with a ``<label>/seed<N>/`` folder holding TUM files, those TUM files
-    and ``<label>_{trajectory,error,frame}.png``.  A folder left empty goes too; anything else stays.  Nothing goes
+    and ``<label>_{trajectory,error,frame,objects}.png``.  A folder left empty goes too; anything else stays.  Nothing goes
     unless ``out_dir`` holds an earlier report (:func:`holds_eval_report`): those names in another folder are not
     this report's to remove.
     """
@@ -387,7 +387,8 @@ def write_eval_report(out_dir, result, planned: int | None = None) -> dict:
     """Write everything for an :class:`groundsim.evaluation.eval.EvalResult` into ``out_dir``; returns ``{what: path}``.
 
     Files: ``report.json``, ``report.md``, ``<scenario>_trajectory.png``, ``<scenario>_error.png``,
-    ``<scenario>_frame.png`` (first seed of each scenario), ``performance.png``, and
+    ``<scenario>_frame.png`` and, for a run with the MOT files of a scene, ``<scenario>_objects.png`` (first seed of
+    each scenario), ``performance.png``, and
     ``<scenario>/seed<N>/{truth,estimate,estimate_perfect}.tum`` for every run; an earlier report's files go
     first (:func:`clear_eval_report`).  ``planned``: the runs asked for, when fewer finished (an interrupted
     eval): both reports then say ``interrupted: N of M runs``.
@@ -443,6 +444,18 @@ def write_eval_report(out_dir, result, planned: int | None = None) -> dict:
         if r0.frame is not None:
             tasks.append(
                 (f"{name}_frame", "plot_frame", out / f"{name}_frame.png", r0.frame, f"{name} seed {r0.seed}: IR frame")
+            )
+        if getattr(r0, "mot_gt", ""):
+            tasks.append(
+                (
+                    f"{name}_objects",
+                    "plot_objects",
+                    out / f"{name}_objects.png",
+                    r0.mot_gt,
+                    r0.mot_tracker,
+                    r0.t_s,
+                    f"{name} seed {r0.seed}: objects tracked (the MOT files' truth and tracker, paired within 3 px)",
+                )
             )
     perf = _performance(result)
     lat = {
@@ -597,6 +610,15 @@ def _markdown(report: dict, descriptions: dict, result) -> str:
 
     L.append(format_perception(report["runs"]))
     L.append("")
+    timelines = [(n, report["files"][f"{n}_objects"]) for n in descriptions if f"{n}_objects" in report["files"]]
+    if timelines:
+        L.append(
+            "Who was tracked when (first seed of each scene): a row per object, coloured by the tracked id paired with "
+            "it within 3 px (a change of colour is an id switch), red where it was visible and untracked, false "
+            "tracks below.\n"
+        )
+        L += [f"![{n} objects]({f})" for n, f in timelines]
+        L.append("")
     L.append("## Reconstruction error beside the paper's Table 2\n")
     L.append(
         "Medians over seeds. Headline: the online track on its observable frames (those the daemon publishes "

@@ -10,7 +10,15 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["PERFORMANCE_STAGES", "PNG_DPI", "plot_errors", "plot_frame", "plot_performance", "plot_trajectory"]
+__all__ = [
+    "PERFORMANCE_STAGES",
+    "PNG_DPI",
+    "plot_errors",
+    "plot_frame",
+    "plot_objects",
+    "plot_performance",
+    "plot_trajectory",
+]
 
 PNG_DPI = 110
 
@@ -295,6 +303,100 @@ def plot_performance(path, summary_perf: list[dict], latencies: dict[str, np.nda
     a2.legend(handles=[budget, *bars[::-1]], fontsize=7, loc="upper left")  # top to bottom, as stacked
     a2.grid(True, axis="y", alpha=0.3)
     fig.suptitle(title or "performance")
+    return _save(fig, path)
+
+
+#: false tracks drawn in a row each at most; the rest share one row
+MAX_FALSE_ROWS = 8
+
+
+def _runs(frames: list[int], keys: list) -> list[tuple[int, int, object]]:
+    """Consecutive frames with the same key as ``(first frame, frames, key)``: a gap in the frames ends a run."""
+    out: list[tuple[int, int, object]] = []
+    for f, k in zip(frames, keys):
+        if out and out[-1][2] == k and out[-1][0] + out[-1][1] == f:
+            out[-1] = (out[-1][0], out[-1][1] + 1, k)
+        else:
+            out.append((f, 1, k))
+    return out
+
+
+def plot_objects(path, gt_text: str, tracker_text: str, t_s, title: str = "") -> Path:
+    """Who was tracked when, from a run's MOT files (:func:`groundsim.evaluation.mot.object_timeline`): a row per
+    true object, pale where it is in the image and visible, grey where hidden; over it, coloured by the tracked id
+    paired with it (within 3 px: a change of colour is an id switch), the frames it was tracked; red ticks where it
+    was visible and nothing tracked it.  Below, each tracked id paired with no object (a false track) on its
+    frames.  ``t_s``: the time of each frame (frame k of the files is ``t_s[k - 1]``)."""
+    import matplotlib
+    from matplotlib.patches import Patch
+
+    from groundsim.evaluation.mot import object_timeline
+
+    tl = object_timeline(gt_text, tracker_text)
+    t = np.asarray(t_s, dtype=float)
+    dt = float(np.median(np.diff(t))) if t.size > 1 else 1.0 / 30.0
+
+    def span(first: int, n: int) -> tuple[float, float]:
+        i = min(max(first - 1, 0), t.size - 1) if t.size else 0
+        start = float(t[i]) if t.size else (first - 1) * dt
+        return start, n * dt
+
+    objects, false = tl["objects"], tl["false"]
+    false_rows = list(false.items())[:MAX_FALSE_ROWS]
+    rest = sorted(f for _, frames in list(false.items())[MAX_FALSE_ROWS:] for f in frames)
+    rows = len(objects) + len(false_rows) + (1 if rest else 0)
+    fig = _figure(11.0, 1.6 + 0.32 * max(rows, 1))
+    ax = fig.add_subplot(1, 1, 1)
+    # tab10 without its red and grey, which mean "missed" and "hidden" here
+    palette = [c for i, c in enumerate(matplotlib.colormaps["tab10"].colors) if i not in (3, 7)]
+    colour_of: dict[int, object] = {}
+    labels: list[str] = []
+    y = rows - 1
+    for gid, frames_states in objects.items():
+        frames = [f for f, _, _ in frames_states]
+        for first, n, visible in _runs(frames, [v for _, v, _ in frames_states]):
+            ax.broken_barh([span(first, n)], (y - 0.4, 0.8), color="0.93" if visible else "0.72", lw=0)
+        named = None  # the id last written on this row: written again only when another takes over
+        for first, n, tid in _runs(frames, [tid for _, _, tid in frames_states]):
+            if tid is None:
+                continue
+            c = colour_of.setdefault(tid, palette[len(colour_of) % len(palette)])
+            ax.broken_barh([span(first, n)], (y - 0.25, 0.5), color=c, lw=0)
+            if tid != named:
+                ax.text(span(first, n)[0], y + 0.3, f"#{tid}", fontsize=6, va="bottom", clip_on=True)
+                named = tid
+        missed = [f for f, visible, tid in frames_states if visible and tid is None]
+        if missed:
+            ax.vlines([span(f, 1)[0] + dt / 2 for f in missed], y - 0.4, y + 0.4, color="tab:red", lw=0.6)
+        labels.append("target" if gid == 1 else f"object {gid}")
+        y -= 1
+    for tid, frames in false_rows:
+        for first, n, _ in _runs(frames, [0] * len(frames)):
+            ax.broken_barh([span(first, n)], (y - 0.25, 0.5), color="tab:red", alpha=0.6, lw=0)
+        labels.append(f"false #{tid}")
+        y -= 1
+    if rest:
+        for first, n, _ in _runs(rest, [0] * len(rest)):
+            ax.broken_barh([span(first, n)], (y - 0.25, 0.5), color="tab:red", alpha=0.4, lw=0)
+        labels.append(f"{len(false) - MAX_FALSE_ROWS} more false")
+    ax.set_yticks(range(rows - 1, -1, -1), labels, fontsize=8)
+    ax.set_ylim(-0.7, rows - 0.3)
+    if t.size:
+        ax.set_xlim(float(t[0]), float(t[-1]) + dt)
+    ax.set_xlabel("time since the scenario's start (s)")
+    ax.grid(True, axis="x", alpha=0.3)
+    ax.legend(
+        handles=[
+            Patch(color="0.93", label="visible (any contrast)"),
+            Patch(color="0.72", label="hidden (cloud, edge)"),
+            Patch(color=palette[0], label="tracked (colour: its id)"),
+            Patch(color="tab:red", label="visible, not tracked / false track"),
+        ],
+        fontsize=7,
+        loc="upper left",
+        bbox_to_anchor=(1.0, 1.0),
+    )
+    fig.suptitle(title or "objects tracked")
     return _save(fig, path)
 
 

@@ -524,14 +524,23 @@ def test_the_bound_ratio_limit_is_the_verdicts_threshold_over_the_sigma_inflatio
 
 
 def test_write_eval_report_files_tables_and_ape(tmp_path):
+    from groundsim.evaluation.mot import gt_line, square_box
+
     runs = [dataclasses.replace(_synthetic_run("A", seed=k), batch=None) for k in range(2)]
     runs.append(_synthetic_run("B", seed=0))
+    # A's first run has the MOT files of a scene (B's none): the objects timeline is drawn from them
+    runs[0] = dataclasses.replace(
+        runs[0],
+        mot_gt="".join(gt_line(k + 1, 1, 320.0, 256.0, 1, 1.0) for k in range(runs[0].frames)),
+        mot_tracker="".join(f"{k + 1},4,{square_box(320.2, 256.0)},1,-1,-1,-1\n" for k in range(12, runs[0].frames)),
+    )
     scores = [score_run(r) for r in runs]
     result = EvalResult(runs, scores, summarise(scores), 3.0, 1, EvalOptions(), "built-in defaults")
     files = write_eval_report(tmp_path, result)
-    for key in ("A_trajectory", "A_error", "A_frame", "B_trajectory", "performance"):
+    for key in ("A_trajectory", "A_error", "A_frame", "A_objects", "B_trajectory", "performance"):
         data = Path(files[key]).read_bytes()
         assert data[:8] == PNG_MAGIC and len(data) > 10_000, key
+    assert "B_objects" not in files
     rep = json.loads((tmp_path / "report.json").read_text())
     assert rep["schema"] == "irtrack.eval/1"
     assert [r["scenario"] for r in rep["summary"]] == ["A", "B"]

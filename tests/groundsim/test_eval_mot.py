@@ -7,6 +7,8 @@ import math
 from types import SimpleNamespace
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from groundsim.evaluation.mot import BOX_SIDE_PX, HIDDEN_CLASS, gt_rows, seq_name, tracker_rows, write_mot
 
@@ -168,3 +170,70 @@ def test_perception_score_counts_false_tracks_over_the_frames_processed():
     assert f["false_tracks_per_min"] == pytest.approx(1 / (10 / 10 / 60))  # one false track in 1 s
     assert f["pd_counted"] == 0  # the target's frames after its first second were all refused: none counted
     assert f["state_accuracy"] == pytest.approx(0.0)  # visible throughout, never a box reported
+
+
+def _line(frame: int, oid: int, u: float, v: float, visible: bool = True, gt: bool = True) -> str:
+    from groundsim.evaluation.mot import gt_line, square_box
+
+    if gt:
+        return gt_line(frame, oid, u, v, 1 if visible else None, 1.0)
+    return f"{frame},{oid},{square_box(u, v)},1,-1,-1,-1\n"
+
+
+def test_object_timeline_pairs_each_frames_objects_and_ids_one_to_one_nearest_first():
+    from groundsim.evaluation.mot import object_timeline
+
+    gt = _line(1, 1, 100.0, 100.0) + _line(1, 2, 102.0, 100.0) + _line(2, 1, 100.0, 100.0, visible=False)
+    # frame 1: id 7 sits on object 2 and within 3 px of object 1 too; id 8 on object 1: each takes its nearest
+    trk = (
+        _line(1, 7, 101.9, 100.0, gt=False) + _line(1, 8, 100.2, 100.0, gt=False) + _line(2, 7, 100.5, 100.0, gt=False)
+    )
+    trk += _line(2, 9, 300.0, 40.0, gt=False) + _line(3, 9, 301.0, 40.0, gt=False)
+    tl = object_timeline(gt, trk)
+    assert tl["objects"] == {1: [(1, True, 8), (2, False, 7)], 2: [(1, True, 7)]}
+    assert tl["false"] == {9: [2, 3]}  # (frame 3 has no truth at all: every tracked id there is a false one)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.lists(st.tuples(st.integers(1, 4), st.integers(1, 5), st.floats(0, 20), st.floats(0, 20), st.booleans())),
+    st.lists(st.tuples(st.integers(1, 4), st.integers(1, 5), st.floats(0, 20), st.floats(0, 20))),
+)
+def test_object_timeline_accounts_for_every_tracked_id_once_a_frame(gts, trks):
+    from groundsim.evaluation.mot import MATCH_PX, object_timeline
+
+    gt_by = {(f, i): (u, v, vis) for f, i, u, v, vis in gts}  # (one row per frame and id, as the files hold)
+    trk_by = {(f, i): (u, v) for f, i, u, v in trks}
+    gt = "".join(_line(f, i, u, v, vis) for (f, i), (u, v, vis) in gt_by.items())
+    trk = "".join(_line(f, i, u, v, gt=False) for (f, i), (u, v) in trk_by.items())
+    tl = object_timeline(gt, trk)
+    for frame in range(1, 5):
+        ids = {i for (f, i) in trk_by if f == frame}
+        paired = [(g, tid) for g, rows in tl["objects"].items() for f, _, tid in rows if f == frame and tid is not None]
+        false = {tid for tid, frames in tl["false"].items() if frame in frames}
+        assert len({tid for _, tid in paired}) == len(paired)  # one object per tracked id
+        assert {tid for _, tid in paired} | false == ids and not false & {tid for _, tid in paired}
+        for g, tid in paired:  # each pair within the radius (the boxes' centres, after the files' 3 decimals)
+            gu, gv, _ = gt_by[(frame, g)]
+            tu, tv = trk_by[(frame, tid)]
+            assert math.hypot(gu - tu, gv - tv) <= MATCH_PX + 0.01
+        # an object and an id left unpaired on one frame are farther apart than the radius
+        unpaired = {g for g, rows in tl["objects"].items() for f, _, tid in rows if f == frame and tid is None}
+        for g in unpaired:
+            gu, gv, _ = gt_by[(frame, g)]
+            assert all(
+                math.hypot(gu - trk_by[(frame, t)][0], gv - trk_by[(frame, t)][1]) > MATCH_PX - 0.01 for t in false
+            )
+
+
+def test_plot_objects_draws_a_png_from_the_mot_files(tmp_path):
+    import numpy as np
+
+    from groundsim.evaluation.report_plots import plot_objects
+
+    gt = "".join(_line(k, 1, 50.0 + k, 60.0, visible=k < 20) for k in range(1, 31))
+    trk = "".join(_line(k, 3, 50.0 + k, 60.0, gt=False) for k in range(5, 25))
+    trk += "".join(_line(k, 4 + k, 200.0, 10.0, gt=False) for k in range(1, 12))  # 11 false ids: a shared row
+    path = plot_objects(tmp_path / "o.png", gt, trk, np.arange(30) / 30.0, "t")
+    data = path.read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 10_000
