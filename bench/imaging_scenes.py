@@ -417,9 +417,12 @@ def score(run: SceneRun, chain) -> dict[str, float]:
     minutes = n_frames / fr / 60.0
     false_tracks = sum(1 for n, off in track_frames.values() if off > 0.5 * n)
     pct = lambda a, b: 100.0 * a / b if b else math.nan  # noqa: E731
-    hota = _hota(run, "".join(mot_gt), "".join(mot_tracker))
+    mot_gt_text, mot_tracker_text = "".join(mot_gt), "".join(mot_tracker)
+    hota = _hota(run, mot_gt_text, mot_tracker_text)
     return dict(
         **hota,
+        mot_gt=mot_gt_text,
+        mot_tracker=mot_tracker_text,
         frames=n_frames,
         on_target=pct(on_target, target_frames),
         confirm_s=(first_on - first_visible[0]) / fr if first_on is not None else math.nan,
@@ -654,6 +657,12 @@ def main(argv: list[str]) -> None:
     )
     ap.add_argument("--stages", action="store_true", help="objects chains: CPU ms by stage below each row")
     ap.add_argument("--misses", action="store_true", help="the target's missed frames below each row")
+    ap.add_argument(
+        "--plots",
+        metavar="DIR",
+        help="draw each run's objects timeline (who was tracked when, as groundsim eval's <scenario>_objects.png) "
+        "into DIR/<scene>-s<seed>-<chain>.png",
+    )
     a = ap.parse_args(argv)
     cv2.setNumThreads(1)
     chains = ("tracker", "objects") if a.chain == "both" else (CHAIN_ALIASES.get(a.chain, a.chain),)
@@ -677,9 +686,20 @@ def main(argv: list[str]) -> None:
                 s = score_repeated(run, CHAINS[c], a.repeat, a.stages)
                 per_chain[c].append((seed, s))
                 _print_row(f"{name}/s{seed}" if several else name, c, s, a)
+                if a.plots:
+                    _plot_objects(Path(a.plots), name, seed, c, s, run)
         if several:
             for c in chains:
                 print("       " + seeds_summary(name, c, per_chain[c]), flush=True)
+
+
+def _plot_objects(out: Path, name: str, seed: int, chain: str, s: dict, run: SceneRun) -> None:
+    from groundsim.evaluation.report_plots import plot_objects
+
+    t_s = np.arange(len(run.frames)) / run.frame_rate_hz
+    title = f"{name} seed {seed}, {chain} chain: objects tracked (paired within {MATCH_PX:.0f} px)"
+    path = plot_objects(out / f"{name}-s{seed}-{chain}.png", s["mot_gt"], s["mot_tracker"], t_s, title)
+    print(f"       objects timeline: {path}", flush=True)
 
 
 def seeds_summary(name: str, chain: str, runs: list[tuple[int, dict]]) -> str:

@@ -300,3 +300,18 @@ def test_chain_single_is_the_tracker_chain_as_the_daemon_names_it(tmp_path, caps
     main(["--scene", "P2", "--chain", "single", "--frames", "3", "--cache", str(tmp_path)])
     rows = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("P2 ")]
     assert len(rows) == 1 and rows[0].split()[1] == "tracker"
+
+
+def test_plots_draw_the_runs_objects_timeline_from_its_mot_lines(tmp_path, capsys):
+    from bench.imaging_scenes import _plot_objects
+    from groundsim.evaluation.mot import object_timeline
+
+    run = _run()
+    s = score(run, _FakeChain())
+    tl = object_timeline(s["mot_gt"], s["mot_tracker"])
+    (rows,) = tl["objects"].values()  # the target: tracked by id 7 on the warm frames the chain does not miss
+    assert [f - 1 for f, _, tid in rows if tid == 7] == [k for k in range(COLD_FROM) if k not in MISSED_WARM]
+    assert tl["false"] == {}
+    _plot_objects(tmp_path, "fake", 3, "objects", s, run)
+    assert (tmp_path / "fake-s3-objects.png").read_bytes()[:4] == b"\x89PNG"
+    assert "objects timeline: " in capsys.readouterr().out
