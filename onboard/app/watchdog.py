@@ -96,7 +96,8 @@ seconds, its own clock) and what it saw; tests feed it a fake clock.  Each condi
     The flight recording stopped (``record.stopped``: free space under ``record.min_free_mb``, a write the disk
     refused; the flight goes on, later messages dropped), or a recording file was deleted or replaced while it was
     written (``record.lost_files``: its messages are lost; the recording goes on in the next file).  Held while the
-    recorder says so, which is the rest of the run: the flight's record is incomplete.
+    recorder says so, which is the rest of the run: the flight's record is incomplete.  A stopped recording does not
+    resume when space frees up; ``record_stopped`` names the file it ended in, its folder, and says so.
 
 ``health_file``
     The liveness file (``output.health_file``) cannot be touched: an orchestrator's health check (``python -m
@@ -179,6 +180,7 @@ from __future__ import annotations
 import collections
 import logging
 import math
+import os
 import threading
 from dataclasses import dataclass
 
@@ -455,11 +457,17 @@ class Watchdog:
             self._clear("estimator_restarted")
         record = record or {}
         stopped, lost = record.get("stopped"), list(record.get("lost_files") or [])
+        ended = record.get("current_file") or record.get("path")
         self._hold(
             "record_stopped",
             stopped
-            and f"the flight recording stopped: {stopped}; the flight goes on, later messages are dropped and counted "
-            "(record.stopped)",
+            # the file it ended in and that it stays stopped: an operator who freed the space saw the same warning
+            # and could not tell whether the recording had come back (it does not, by design: one flight, one file
+            # set, no gap inside it)
+            and f"the flight recording stopped: {stopped}; {ended} ends there (readable); the flight goes on, later "
+            "messages are dropped and counted (record.stopped); it does not resume in this run: free space on (or "
+            f"make writable) {os.path.dirname(str(ended)) or '.'}, or set record.path on another disk, and restart "
+            "the daemon to record again",
         )
         self._hold(
             "record_file_lost",

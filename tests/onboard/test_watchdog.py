@@ -348,6 +348,22 @@ def test_the_daemons_own_parts_warn_estimator_restarts_a_stopped_or_lost_recordi
     assert len(_warnings(caplog)) == 4  # each code logged once
 
 
+def test_record_stopped_names_the_file_it_ended_in_and_says_it_does_not_resume(caplog):
+    """A helper's storage audit (a tmpfs filled mid-flight, then freed): the warning said why the recording stopped but
+    not which file it ended in, where to free space, nor that freeing it brings no recording back in this run."""
+    wd = _wd()
+    stopped = "a write failed (No space left on device)"
+    rec = {"stopped": stopped, "lost_files": [], "current_file": "/media/sd/f.3.mcap"}
+    with caplog.at_level(logging.INFO, logger="onboard.app.watchdog"):
+        wd.components(100.0, record=rec)
+        wd.components(101.0, record=rec)
+    (w,) = wd.active
+    assert w.code == "record_stopped"
+    assert "No space left on device" in w.message and "/media/sd/f.3.mcap ends there" in w.message
+    assert "does not resume in this run" in w.message and "/media/sd," in w.message and "restart" in w.message
+    assert len(_warnings(caplog)) == 1
+
+
 def test_stream_rate_low_names_the_message_and_both_rates_once(caplog):
     from onboard.core.stream_rate import REASK_S, StreamRate
 
