@@ -123,6 +123,13 @@ class RecorderTap:
         try:
             self.recorder.start()
         except OSError as exc:
+            from onboard.io.record_files import record_path_problem
+
+            # a file where the folder should be, or a folder at the path itself, fails as EEXIST: "File exists"
+            # named neither; --check's own words do
+            problem = record_path_problem(self._path)
+            if problem is not None:
+                raise InputError(f"record.path: cannot write {self._path}: {problem}") from None
             raise InputError(f"record.path: cannot write {exc.filename or self._path}: {exc.strerror or exc}") from None
 
     def on_received(self, frame: IrFrame, received_ns: int) -> None:

@@ -651,6 +651,26 @@ def test_follow_settings_without_enabled_are_refused_not_silently_off():
     assert not build_config({"follow": {"enabled": False, "rate_hz": 2.0}}).follow.enabled
 
 
+@pytest.mark.parametrize("blocker", ["file", "folder"])
+def test_the_start_names_a_file_where_the_recording_folder_goes_or_a_folder_at_its_path(tmp_path, blocker):
+    """A helper's storage audit: --record under a file, or at a folder, exited 2 with 'cannot write ...: File
+    exists', which named neither; --check said 'is not a folder' / 'is a folder'."""
+    from onboard.app.observers import RecorderTap
+    from onboard.core.errors import InputError
+    from onboard.io.record import FlightRecorder, RecordConfig
+
+    if blocker == "file":
+        (tmp_path / "sd").write_text("x")
+        path, why = tmp_path / "sd" / "f.mcap", f"{tmp_path / 'sd'} is not a folder"
+    else:
+        (tmp_path / "f.mcap").mkdir()
+        path, why = tmp_path / "f.mcap", f"{tmp_path / 'f.mcap'} is a folder"
+    tap = RecorderTap(FlightRecorder(RecordConfig(path=str(path))), str(path))
+    with pytest.raises(InputError) as err:
+        tap.start()
+    assert str(err.value) == f"record.path: cannot write {path}: {why}"
+
+
 def test_check_refuses_what_the_start_would_a_recording_folder_it_cannot_write_or_a_live_view_host_unknown(
     tmp_path, capsys
 ):
