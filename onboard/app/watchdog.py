@@ -457,23 +457,26 @@ class Watchdog:
             self._clear("estimator_restarted")
         record = record or {}
         stopped, lost = record.get("stopped"), list(record.get("lost_files") or [])
-        ended = record.get("current_file") or record.get("path")
+        # None: no file of the recording is left (its folder deleted, and the next file could not be made)
+        ended = record.get("current_file")
+        folder = os.path.dirname(str(ended or record.get("path") or "")) or "."
         self._hold(
             "record_stopped",
             stopped
             # the file it ended in and that it stays stopped: an operator who freed the space saw the same warning
             # and could not tell whether the recording had come back (it does not, by design: one flight, one file
             # set, no gap inside it)
-            and f"the flight recording stopped: {stopped}; {ended} ends there (readable); the flight goes on, later "
-            "messages are dropped and counted (record.stopped); it does not resume in this run: free space on (or "
-            f"make writable) {os.path.dirname(str(ended)) or '.'}, or set record.path on another disk, and restart "
+            and f"the flight recording stopped: {stopped}; "
+            + (f"{ended} ends there (readable)" if ended else "no file of it is left (record.lost_files)")
+            + "; the flight goes on, later messages are dropped and counted (record.stopped); it does not resume in "
+            f"this run: free space on (or make writable) {folder}, or set record.path on another disk, and restart "
             "the daemon to record again",
         )
         self._hold(
             "record_file_lost",
             lost
-            and f"recording file(s) deleted while written, their messages lost: {', '.join(lost)}; the recording goes "
-            f"on in {record.get('current_file')}",
+            and f"recording file(s) deleted while written, their messages lost: {', '.join(lost)}; "
+            + ("the recording has stopped (record_stopped)" if stopped else f"the recording goes on in {ended}"),
         )
         self._hold(
             "health_file",

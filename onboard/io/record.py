@@ -634,13 +634,14 @@ class FlightRecorder:
                     self.messages_written -= n
                     self.dropped += n
                     self.dropped_by_topic[topics.get(cid, "?")] += n
-        path = self.files[-1] if self.files else self.path
+        # no file left: the one being written was deleted and the next could not be made (its folder gone with it)
+        path = self.files[-1] if self.files else None
         self._finish()
         log.warning(
-            "recorder: stopped recording: %s; %s ends there (the flight goes on; later messages are dropped and"
+            "recorder: stopped recording: %s; %s (the flight goes on; later messages are dropped and"
             " counted, the status's record.stopped says why)%s",
             reason,
-            path,
+            f"{path} ends there" if path else "no file of the recording is left (record.lost_files)",
             "" if self._finish_ok else "; it has no summary: python -m onboard.record_recover reads it whole",
         )
 

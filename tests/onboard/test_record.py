@@ -497,6 +497,32 @@ def test_a_deleted_file_is_listed_lost_only_once_the_recording_goes_on_in_the_ne
     assert {s["current_file"] for s in seen if s["lost_files"]} == {str(tmp_path / "f.1.mcap")}
 
 
+def test_a_folder_deleted_and_not_made_again_stops_the_recording_naming_no_deleted_file(tmp_path, caplog):
+    """A helper's storage audit (the recording's folder deleted, its parent then read-only): the log said the deleted
+    file 'ends there', and the status's current_file was None while the warnings read 'goes on in None'."""
+    import logging
+
+    folder = tmp_path / "rec"
+    path = folder / "f.mcap"
+    rec = FlightRecorder(below_floors(RecordConfig(path=str(path), flush_interval_s=0.05)), vehicle="uav1")
+    rec.start()
+    rec.on_frame(_frame(0), 0)
+    os.unlink(path)
+    folder.rmdir()
+    folder.write_bytes(b"")  # a file where the folder was: the next recording file cannot be made
+    deadline = time.monotonic() + 10.0
+    i = 1
+    with caplog.at_level(logging.WARNING, logger="onboard.io.record"):
+        while rec.stopped is None and time.monotonic() < deadline:
+            rec.on_frame(_frame(i), i)
+            i += 1
+            time.sleep(0.01)
+        rec.close()
+    assert rec.stopped is not None and rec.lost_files == [str(path)] and rec.stats()["current_file"] is None
+    (said,) = [r.getMessage() for r in caplog.records if "stopped recording" in r.getMessage()]
+    assert f"{path} ends there" not in said and "no file of the recording is left" in said, said
+
+
 def test_a_rotation_that_cannot_make_the_next_file_stops_the_recording_naming_it(tmp_path):
     """A read-only recording folder (chattr +i) stopped a flight's recording with 'a rotate failed (Operation not
     permitted)': the file it could not make was not named.  A name taken since start is refused the same way."""

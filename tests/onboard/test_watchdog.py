@@ -364,6 +364,18 @@ def test_record_stopped_names_the_file_it_ended_in_and_says_it_does_not_resume(c
     assert len(_warnings(caplog)) == 1
 
 
+def test_a_recording_stopped_after_its_only_file_was_deleted_names_no_file_and_does_not_say_it_goes_on():
+    """The same audit, the folder deleted and not made again: 'the recording goes on in None', and record_stopped named
+    the deleted file as where the recording ends."""
+    wd = _wd()
+    rec = {"stopped": "a rotate failed (/sd/rec: Read-only file system)", "lost_files": ["/sd/rec/f.mcap"]}
+    wd.components(100.0, record={**rec, "path": "/sd/rec/f.mcap", "current_file": None})
+    msg = {w.code: w.message for w in wd.active}
+    assert "None" not in msg["record_file_lost"] and "has stopped" in msg["record_file_lost"]
+    assert "ends there" not in msg["record_stopped"] and "no file of it is left" in msg["record_stopped"]
+    assert "make writable) /sd/rec," in msg["record_stopped"]
+
+
 def test_stream_rate_low_names_the_message_and_both_rates_once(caplog):
     from onboard.core.stream_rate import REASK_S, StreamRate
 
