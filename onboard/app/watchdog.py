@@ -467,7 +467,13 @@ class Watchdog:
             # and could not tell whether the recording had come back (it does not, by design: one flight, one file
             # set, no gap inside it)
             and f"the flight recording stopped: {stopped}; "
-            + (f"{ended} ends there (readable)" if ended else "no file of it is left (record.lost_files)")
+            + (
+                f"{ended} ends there (readable)"
+                if ended
+                else "no file of it is left (record.lost_files)"
+                if lost
+                else "nothing of it was written"
+            )
             + "; the flight goes on, later messages are dropped and counted (record.stopped); it does not resume in "
             f"this run: free space on (or make writable) {folder}, or set record.path on another disk, and restart "
             "the daemon to record again",

@@ -120,6 +120,7 @@ from __future__ import annotations
 import base64
 import collections
 import datetime
+import errno
 import functools
 import json
 import logging
@@ -497,13 +498,24 @@ class FlightRecorder:
     # ------------------------------------------------------------------ life cycle
 
     def start(self) -> None:
-        """Open the first file (errors here are the caller's: a bad directory fails at start) and the thread; a
-        ``path`` an earlier recording holds is kept, this one goes beside it (:func:`free_recording_path`)."""
+        """Open the first file (errors here are the caller's: a bad directory fails at start, a full disk does not)
+        and the thread; a ``path`` an earlier recording holds is kept, this one goes beside it
+        (:func:`free_recording_path`)."""
         free = free_recording_path(self.path)
         if free != self.path:
             log.warning("record.path: %s holds an earlier recording, kept; this one is %s", self.path, free)
             self.path = free
-        self._open(0)  # first: a path that cannot be written is the caller's error, as ever
+        try:
+            self._open(0)  # first: a path that cannot be written is the caller's error, as ever
+        except OSError as exc:
+            if exc.errno not in (errno.ENOSPC, errno.EDQUOT):
+                raise
+            # a disk with no room at all is the min_free_mb case, not a wrong path: the daemon that exited 2 here
+            # tracked nothing, while one with a few MB free flew unrecorded
+            self._abandon_first_file()
+            self.stopped = f"no room to start it ({_os_error_text(exc)})"
+            log.warning("recorder: not recording to %s: %s", self.path, self.stopped)
+            return
         reason = self._short_of_space()
         if reason is not None:  # the flight goes on unrecorded: tracking is not held hostage by a full disk
             self.stopped = reason
@@ -691,6 +703,21 @@ class FlightRecorder:
                 except OSError as exc:
                     log.warning("recorder: cannot delete %s: %s", old, exc)
         log.info("recording to %s", path)
+
+    def _abandon_first_file(self) -> None:
+        """Close and remove the first file when its header did not fit (made here, exclusively: no one else's), so that
+        no torn file is left for a reader or for the next start's :func:`free_recording_path` to step around."""
+        f, self._file, self._writer = self._file, None, None
+        if f is None:  # the open itself was refused: nothing made
+            return
+        try:
+            f.close()
+        except OSError:
+            pass  # the data it could not write is what is being thrown away
+        try:
+            os.unlink(rotated_path(self.path, 0))
+        except OSError as exc:
+            log.warning("recorder: cannot remove the torn %s: %s", rotated_path(self.path, 0), exc)
 
     def _finish(self) -> None:
         w, f = self._writer, self._file

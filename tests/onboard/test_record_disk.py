@@ -159,6 +159,25 @@ def test_no_room_at_start_records_nothing_and_says_so(tmp_path, monkeypatch, cap
     assert "not recording to" in caplog.text and "min_free_mb" in caplog.text
 
 
+def test_a_disk_with_no_room_for_the_header_flies_unrecorded_and_leaves_no_torn_file(tmp_path, monkeypatch, caplog):
+    """A helper's storage audit (the recording's tmpfs full at start): the first file's header was refused, start raised,
+    and the daemon exited 2 -- no tracking at all -- while a disk with a few MB free flew unrecorded; a 0-byte f.mcap
+    was left behind and 'cannot finish ?' logged at shutdown."""
+    disk = Disk(capacity=0)
+    monkeypatch.setattr(mcap_chunks.os, "writev", disk.writev)
+    rec = FlightRecorder(_config(tmp_path, min_free_mb=0.0), vehicle="uav1")
+    with caplog.at_level("WARNING", logger="onboard.io.record"):
+        rec.start()
+        assert rec.on_frame(_frame(0), time.monotonic_ns()) is False
+        rec.close()
+    assert disk.refused >= 1 and rec.stopped is not None and "No space left on device" in rec.stopped
+    assert rec.dropped == 1 and rec.files == [] and rec.stats()["current_file"] is None
+    assert list(tmp_path.iterdir()) == []
+    said = [r.getMessage() for r in caplog.records]
+    assert said[0].startswith(f"recorder: not recording to {tmp_path / 'f.mcap'}: no room to start it"), said
+    assert not any("cannot finish" in m for m in said), said
+
+
 def test_the_floor_is_read_from_the_recordings_file_system(tmp_path):
     st = os.statvfs(tmp_path)
     free = record.free_disk_bytes(str(tmp_path / "f.mcap"))

@@ -374,6 +374,11 @@ def test_a_recording_stopped_after_its_only_file_was_deleted_names_no_file_and_d
     assert "None" not in msg["record_file_lost"] and "has stopped" in msg["record_file_lost"]
     assert "ends there" not in msg["record_stopped"] and "no file of it is left" in msg["record_stopped"]
     assert "make writable) /sd/rec," in msg["record_stopped"]
+    wd = _wd()  # a disk with no room for the first file's header: no file made, none lost
+    wd.components(100.0, record={"stopped": "no room to start it (No space left on device)", "lost_files": [],
+                                 "path": "/sd/rec/f.mcap", "current_file": None})  # fmt: skip
+    (w,) = wd.active
+    assert "nothing of it was written" in w.message and "make writable) /sd/rec," in w.message
 
 
 def test_stream_rate_low_names_the_message_and_both_rates_once(caplog):
