@@ -10,7 +10,9 @@ Threads (nothing else runs concurrently):
   :class:`FrameQueue`; when full the *oldest* frame is dropped and counted (``dropped_queue``; also
   ``frames_dropped_bunched`` when the queued frames arrived much faster than they were captured, a burst,
   which the ``overload`` warning names instead of the CPU).
-  It never blocks.  The output taps (:mod:`onboard.app.observers`) see each frame as received.
+  It never blocks.  The output taps (:mod:`onboard.app.observers`) see each frame as received.  Zenoh's thread also
+  notes a status on ``irtrack/<vehicle>/status`` from another session (another daemon of this name: the watchdog's
+  ``name_clash``), one tuple assigned.
 * **pipeline thread**: pops frames, runs :meth:`FramePipeline.process` (admission,
   imaging -- the objects chain first waits up to ``imaging.pose_wait_ms`` (40 ms) for the attitude sample after
   the frame, to register it with an interpolated rotation --, pose at capture time -- waiting up to
@@ -85,7 +87,7 @@ from onboard.app.observers import (
 )
 from onboard.app.os_thread import name_os_thread
 from onboard.app.shared_pose import SharedPoseBuffer
-from onboard.app.status_sections import camera_section, estimator_label, time_offset_section
+from onboard.app.status_sections import camera_section, estimator_label, time_offset_section, twin_words
 from onboard.app.watchdog import OVERLOAD_CLEAR_S, STALL_NAMED_S, Watchdog
 from onboard.core.errors import InputError
 from onboard.core.irframe import IrFrame, IrFrameError, check_payload_size, decode_irframe
@@ -94,7 +96,7 @@ from onboard.core.status import RollingStats, build_status
 from onboard.core.track import Track, track_to_bytes
 from onboard.core.utc_clock import UtcClock, with_utc
 from onboard.io.record import NOT_LOOKED_UP
-from onboard.io.zenoh_session import FRAME_SCHEMA, foreign_schema, frame_key
+from onboard.io.zenoh_session import FRAME_SCHEMA, foreign_schema, frame_key, status_key
 from onboard.pipeline.admission import ArrivalGaps
 from onboard.pipeline.frame_pipeline import (
     ACCEPTED_FRAME_EVENTS,
@@ -207,6 +209,9 @@ class OnboardService:
         # the session's routers and peers at the last watch (None: not known), for the status's zenoh section
         self._zenoh_linked: tuple[int | None, int | None] = (None, None)
         self._sub = None
+        self._twin_sub = None  # another daemon's status under this vehicle's name (name_clash)
+        #: when the newest status of another daemon of this name arrived (self._clock) and what it said, in words
+        self._twin_heard: tuple[float, str] | None = None
         self._track_pub = None
         self._objects_pub = None
         self._status_pub = None
@@ -268,7 +273,6 @@ class OnboardService:
             guidance_key,
             objects_key,
             open_session,
-            status_key,
             track_key,
         )
 
@@ -326,6 +330,11 @@ class OnboardService:
             )
         self._frame_encoding = zenoh.Encoding(FRAME_ENCODING)
         self._sub = self.session.declare_subscriber(frame_key(cfg.vehicle), self._on_frame)
+        # zenoh does not deliver this session's own statuses back (REMOTE): any status on the key is another daemon's
+        # under this name, whose tracks interleave with ours for every consumer (the watchdog's name_clash)
+        self._twin_sub = self.session.declare_subscriber(
+            status_key(cfg.vehicle), self._on_twin_status, allowed_origin=zenoh.Locality.REMOTE
+        )
         guidance = next((t for t in self.taps if t.name == "guidance"), None)
         if guidance is not None:  # advised manoeuvres on irtrack/<vehicle>/guidance (onboard.app.guidance_tap)
             key = guidance_key(cfg.vehicle)
@@ -379,13 +388,13 @@ class OnboardService:
                 log.warning("pipeline thread did not stop within %.1f s", timeout_s)
         if isinstance(self.estimator, (ThreadedEstimator, ProcessEstimator)):
             self.estimator.close(timeout_s / 2)
-        for ent in (self._sub, self._track_pub, self._status_pub, self._objects_pub):
+        for ent in (self._sub, self._twin_sub, self._track_pub, self._status_pub, self._objects_pub):
             if ent is not None:
                 try:
                     ent.undeclare()
                 except Exception as exc:  # noqa: BLE001 - already gone with the session
                     log.debug("zenoh undeclare failed: %s", exc)
-        self._sub = self._track_pub = self._status_pub = self._objects_pub = None
+        self._sub = self._twin_sub = self._track_pub = self._status_pub = self._objects_pub = None
         if self.session is not None:
             try:
                 self.session.close()
@@ -411,6 +420,14 @@ class OnboardService:
                 self.arrival_gaps.missing,
                 self.tracks_published,
             )
+
+    # ------------------------------------------------------------------ another daemon of this name (zenoh thread)
+
+    def _on_twin_status(self, sample) -> None:
+        """A status on this vehicle's status key from another zenoh session: another daemon publishes as this
+        vehicle.  Noted with what it says (any peer may publish there: whatever it sent, the clash is noted, and
+        nothing of it is used but the words)."""
+        self._twin_heard = (self._clock(), twin_words(sample.payload.to_bytes()))
 
     # ------------------------------------------------------------------ frames in (zenoh thread)
 
@@ -782,6 +799,7 @@ class OnboardService:
             if duplicate_senders is not None:
                 self.watchdog.autopilot_duplicate(now, duplicate_senders())
             self.watchdog.utc(now, self.utc.mapping)
+        self.watchdog.name_clash(now, self._twin_heard, status_key(self.config.vehicle))
         video = next((t for t in self.taps if isinstance(t, VideoTap)), None)
         if video is not None and video.streamer is not None:
             vc = self.config.video

@@ -3,14 +3,18 @@ together): kept apart so that the service stays the wiring."""
 
 from __future__ import annotations
 
+import json
+import math
 from typing import TYPE_CHECKING, Any
+
+from onboard.core.status import STATUS_SCHEMA
 
 if TYPE_CHECKING:
     from onboard.app.config import OnboardConfig
     from onboard.io.camera_protocol import CameraProtocol
     from onboard.pipeline.frame_pipeline import FramePipeline
 
-__all__ = ["camera_section", "estimator_label", "time_offset_section"]
+__all__ = ["camera_section", "estimator_label", "time_offset_section", "twin_words", "TWIN_STATUS_MAX_BYTES"]
 
 
 def estimator_label(kind: str, estimator: Any) -> str:
@@ -39,3 +43,34 @@ def camera_section(camera: CameraProtocol, config: OnboardConfig, pipeline: Fram
     st["tracker_holding"] = bool(getattr(pipeline.tracker, "holding", False))
     st["last_selection"] = pipeline.last_selection
     return st
+
+
+#: a status larger than this from another daemon is not parsed (the daemon's own are a few KiB): only its size is said
+TWIN_STATUS_MAX_BYTES = 256 * 1024
+
+
+def twin_words(payload: bytes) -> str:
+    """What another daemon's status (``irtrack.status/1``, on this vehicle's key) says of it, in words for the
+    ``name_clash`` warning: its uptime, frames received and MAVLink link state.  Any peer may publish on the key, so
+    whatever it sent gives words and never an exception."""
+    if len(payload) > TWIN_STATUS_MAX_BYTES:
+        return f"a payload of {len(payload)} bytes"
+    try:
+        obj = json.loads(payload)
+    except (ValueError, RecursionError):  # (RecursionError: nested too deep)
+        return f"{len(payload)} bytes that are not JSON"
+    if not isinstance(obj, dict) or obj.get("schema") != STATUS_SCHEMA:
+        return f"{len(payload)} bytes that are not an irtrack.status/1"
+    words = []
+    up = obj.get("uptime_s")
+    if isinstance(up, (int, float)) and not isinstance(up, bool) and math.isfinite(up):
+        words.append(f"up {up:.0f} s")
+    frames = obj.get("frames")
+    n = frames.get("in") if isinstance(frames, dict) else None
+    if isinstance(n, int) and not isinstance(n, bool):
+        words.append(f"{n} frames in")
+    link = obj.get("link")
+    state = link.get("state") if isinstance(link, dict) else None
+    if isinstance(state, str):
+        words.append(f"MAVLink {state[:40]}")
+    return "its status says " + ", ".join(words) if words else "a status without uptime, frames or link"

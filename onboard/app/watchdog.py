@@ -162,6 +162,16 @@ seconds, its own clock) and what it saw; tests feed it a fake clock.  Each condi
     address has been silent for ``mavlink.heartbeat_timeout_s``).  Cleared when the second one has not heartbeated
     for ``mavlink.heartbeat_timeout_s``.
 
+``name_clash``
+    Another daemon publishes under this daemon's vehicle name: a status (``irtrack/<vehicle>/status``) came from
+    another zenoh session (the daemon's own are not delivered back to it).  Its tracks, objects and status then
+    interleave with this daemon's on the same keys, and a consumer takes the two for one vehicle: the watcher prints
+    both, a ground station follows both, the fleet fusion reads two cameras as one (it names the clash itself when
+    their cameras stand apart, and drops the second copy when both daemons read one camera).  This daemon's own
+    output is its own camera's and goes on.  The message names the key and what the other's status says (its
+    uptime, frames received, MAVLink link state).  Raised by the first such status, cleared ``NAME_CLASH_CLEAR_S``
+    (10 s) after the last.
+
 ``video_rate``
     The H.264 stream's camera runs at a rate other than ``video.fps`` by more than ``VIDEO_RATE_TOLERANCE``
     (20 %), measured from the frames' capture times (:attr:`onboard.io.video.VideoStreamer.camera_rate_hz`):
@@ -212,6 +222,8 @@ VIDEO_RATE_TOLERANCE = 0.2
 ROTATION_SILENT_S = 2.0
 ESTIMATOR_RESTART_CLEAR_S = 30.0
 AUTOPILOT_REBOOT_CLEAR_S = 30.0
+#: name_clash clears this long after the other daemon's last status (ten of the default 1 s status interval)
+NAME_CLASH_CLEAR_S = 10.0
 #: a main-loop turn this much later than the previous one is a stall of the whole process, named as overload's cause
 #: (the loop turns at least every 50 ms while it runs; a second is twenty times that)
 STALL_NAMED_S = 1.0
@@ -794,6 +806,20 @@ class Watchdog:
             "two vehicles with one system id on this port (or one autopilot over two routes); everything from the "
             "second address is refused (rejected: autopilot_duplicate_refused). Give each vehicle its own MAV_SYS_ID "
             "(PX4 MAV_SYS_ID, ArduPilot SYSID_THISMAV) or its own port",
+        )
+
+    def name_clash(self, now_s: float, heard: tuple[float, str] | None, status_key: str) -> None:
+        """``heard``: when the newest status of another daemon publishing as this vehicle arrived (``now_s``'s clock)
+        and what it says in words, or None when none has; ``status_key``: the key it came on.  ``name_clash`` while
+        one arrived within ``NAME_CLASH_CLEAR_S`` (module docstring)."""
+        if heard is None or now_s - heard[0] > NAME_CLASH_CLEAR_S:
+            return self._clear("name_clash")
+        self._raise(
+            "name_clash",
+            f"another daemon publishes as this vehicle: its status arrives on {status_key} ({heard[1]}); its tracks, "
+            "objects and status interleave with this daemon's on the same keys, and a consumer (onboard.watch, a "
+            "ground station, the fleet fusion) takes the two for one vehicle. Give each daemon its own vehicle name "
+            "(the 'vehicle' setting, --vehicle), or stop the other one",
         )
 
     def utc(self, now_s: float, mapping) -> None:

@@ -8,6 +8,7 @@ status counters while tracks keep flowing; SIGTERM must end it with exit code 0 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import math
@@ -659,6 +660,69 @@ def test_daemon_exits_2_when_its_zenoh_port_is_taken(daemon_env):
     assert proc.returncode == 2
     last = proc.stderr.strip().splitlines()[-1]
     assert last == f"zenoh: cannot listen on tcp/127.0.0.1:{port}: port already in use"
+
+
+@pytest.mark.integration
+@pytest.mark.timeout(90)
+def test_two_daemons_of_one_vehicle_name_each_warn_name_clash_once_in_log_and_status(daemon_env):
+    """Two daemons started as uav1 (a config copied to a second vehicle, a daemon started twice): their tracks and
+    statuses interleave on the same keys.  Each says so once, and its status lists it; neither crashes."""
+    from onboard.io.zenoh_session import ZenohConfig, open_session, status_key
+
+    zport = free_tcp_port()
+    common = ["--set", "output.health_file=null", "--set", "output.status_interval_s=0.5"]
+    first = Daemon(
+        ["--mavlink", f"udpin:127.0.0.1:{free_udp_port()}", "--zenoh-listen", f"tcp/127.0.0.1:{zport}", *common],
+        daemon_env,
+    )
+    second = None
+    session = None
+    try:
+        assert first.started.wait(45), "first daemon did not start:\n" + "\n".join(first.lines)
+        statuses: queue.Queue = queue.Queue()
+        session = open_session(ZenohConfig(connect=(f"tcp/127.0.0.1:{zport}",)))
+        sub = session.declare_subscriber(status_key(), lambda s: statuses.put(json.loads(s.payload.to_bytes())))
+        # alone, its own statuses are not another daemon's
+        alone_until = time.monotonic() + 2.0
+        while time.monotonic() < alone_until:
+            with contextlib.suppress(queue.Empty):
+                codes = [w["code"] for w in statuses.get(timeout=0.5)["warnings"]]
+                assert "name_clash" not in codes
+        second = Daemon(
+            [
+                "--mavlink",
+                f"udpin:127.0.0.1:{free_udp_port()}",
+                "--zenoh-connect",
+                f"tcp/127.0.0.1:{zport}",
+                "--zenoh-listen",
+                "tcp/127.0.0.1:0",
+                *common,
+            ],
+            daemon_env,
+        )
+        assert second.started.wait(45), "second daemon did not start:\n" + "\n".join(second.lines)
+        listed = None
+        deadline = time.monotonic() + 20.0
+        while listed is None and time.monotonic() < deadline:
+            with contextlib.suppress(queue.Empty):
+                st = statuses.get(timeout=0.5)
+                listed = next((w for w in st["warnings"] if w["code"] == "name_clash"), None)
+        assert listed is not None, "no status listed name_clash:\n" + "\n".join(first.lines + second.lines)
+        assert "irtrack/uav1/status" in listed["message"] and "its status says up" in listed["message"]
+        warned_by = lambda d: sum("name_clash: another daemon publishes as this vehicle" in ln for ln in d.lines)  # noqa: E731
+        clash_deadline = time.monotonic() + 10.0
+        while not (warned_by(first) and warned_by(second)) and time.monotonic() < clash_deadline:
+            time.sleep(0.2)
+        time.sleep(2.0)  # statuses go on arriving: still one WARNING each
+        assert (warned_by(first), warned_by(second)) == (1, 1), "\n".join(first.lines + second.lines)
+        assert first.proc.poll() is None and second.proc.poll() is None
+        sub.undeclare()
+    finally:
+        if session is not None:
+            session.close()
+        first.stop()
+        if second is not None:
+            second.stop()
 
 
 CTRL_C_WHILE_STARTING_S = 0.8  # after the launch: importing, or starting the estimator process and its fork server

@@ -594,3 +594,44 @@ def test_a_session_that_dials_and_has_no_router_or_peer_is_warned_after_5_s_and_
         wd.zenoh_links(108.0, connect, None)  # not known: no warning, ever
         wd.zenoh_links(120.0, (), 0)  # listening only: peers come when they will (no_frames says it)
         assert wd.active == ()
+
+
+def test_name_clash_is_warned_once_while_another_daemons_status_arrives_and_clears_after_it_stops(caplog):
+    from onboard.app.watchdog import NAME_CLASH_CLEAR_S
+
+    wd = _wd()
+    key = "irtrack/uav1/status"
+    wd.name_clash(10.0, None, key)
+    assert wd.active == ()
+    with caplog.at_level(logging.INFO, logger="onboard.app.watchdog"):
+        for k in range(5):  # its statuses keep coming, each heard just before the check
+            wd.name_clash(11.0 + k, (11.0 + k - 0.2, f"its status says up {k} s"), key)
+        (w,) = wd.active
+        assert w.code == "name_clash"
+        assert key in w.message and "up 4 s" in w.message  # the newest status's words
+        assert "its own vehicle name" in w.message and "--vehicle" in w.message
+        wd.name_clash(14.8 + NAME_CLASH_CLEAR_S - 0.1, (14.8, "its status says up 4 s"), key)
+        assert [x.code for x in wd.active] == ["name_clash"]  # held between statuses
+        wd.name_clash(14.8 + NAME_CLASH_CLEAR_S + 0.1, (14.8, "its status says up 4 s"), key)
+        assert wd.active == ()
+    assert sum(m.startswith("name_clash:") for m in _warnings(caplog)) == 1
+
+
+@pytest.mark.parametrize(
+    ("payload", "words"),
+    [
+        (
+            b'{"schema": "irtrack.status/1", "uptime_s": 12.4, "frames": {"in": 300}, "link": {"state": "connected"}}',
+            "its status says up 12 s, 300 frames in, MAVLink connected",
+        ),
+        (b'{"schema": "irtrack.status/1", "uptime_s": "x", "frames": [], "link": 3}', "a status without uptime"),
+        (b'{"schema": "other"}', "not an irtrack.status/1"),
+        (b"\xff\xfe", "not JSON"),
+        (b"[" * 100_000, "not JSON"),
+        (b" " * (300 * 1024), "a payload of 307200 bytes"),
+    ],
+)
+def test_another_daemons_status_is_put_in_words_whatever_it_holds(payload, words):
+    from onboard.app.status_sections import twin_words
+
+    assert words in twin_words(payload)
