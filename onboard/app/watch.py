@@ -10,7 +10,9 @@ prints one line per track (:func:`format_track`): the frame's capture time on th
 the tracker's state, then the 3-D position (WGS84 and local NED) with its 1-sigma per NED axis, the range
 and its relative sigma when the estimator has one, else the line of sight (azimuth / elevation), else the
 pixel; last the quality verdict ``observable yes|no``.  ``--json`` prints the payloads as received, one
-per line, for ``jq`` and friends (the start and summary lines then go to stderr).
+per line, for ``jq`` and friends (the start and summary lines then go to stderr).  Tracks that go back and forth
+in ``seq`` and ``time_boot_us`` (:data:`TWO_PUBLISHERS_RETURNS` not newer than the one before) are two publishers
+on the key, two daemons of one name: said once on stderr (:func:`two_publishers_line`) and in the summary.
 
 The zenoh options are the daemon's (:mod:`onboard.io.zenoh_session`); with no endpoint and no file the
 session connects to ``tcp/127.0.0.1:7447``, where the daemon of ``config/onboard_sim.yaml`` listens, with
@@ -57,6 +59,7 @@ __all__ = [
     "format_track",
     "format_fleet_track",
     "summary_line",
+    "two_publishers_line",
     "interrupted_line",
     "build_parser",
     "zenoh_config",
@@ -72,6 +75,9 @@ EXIT_CONFIG = 2
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, as a shell reports Ctrl-C
 EXIT_TERMINATED = 143  # 128 + SIGTERM
 POLL_S = 0.1  # longest wait on the queue: the deadline, Ctrl-C and the no-track hint are checked this often
+#: this many tracks not newer than the one before are two publishers on the key, said once (a camera or daemon that
+#: restarts goes back once)
+TWO_PUBLISHERS_RETURNS = 6
 
 
 @dataclass
@@ -88,6 +94,20 @@ class WatchCounts:
     first_observable_s: float | None = None
     bad: int = 0
     fleet_tracks: int = 0  # of ``tracks``, the fusion's (which carry no line of sight)
+    #: tracks no newer than the one before them (``seq`` and ``time_boot_us`` both not ahead): one daemon's tracks
+    #: only move forward, so these are two publishers interleaving on the key (:data:`TWO_PUBLISHERS_RETURNS`)
+    returns: int = 0
+    _last: tuple[int, int] | None = None
+
+    def add_order(self, track: Track) -> bool:
+        """Note ``track``'s place in the stream; True when it is the :data:`TWO_PUBLISHERS_RETURNS`-th return (say it
+        then, once)."""
+        here = (track.seq, track.time_boot_us)
+        back = self._last is not None and here[0] <= self._last[0] and here[1] <= self._last[1]
+        self._last = here
+        if back:
+            self.returns += 1
+        return back and self.returns == TWO_PUBLISHERS_RETURNS
 
     def add_fleet(self, obj: dict) -> None:
         """One ``irtrack.fleet_track/1`` (the fusion's output): a position always, a line of sight never, its time
@@ -227,9 +247,19 @@ def summary_line(counts: WatchCounts, seconds: float) -> str:
         text += f" (first at t {counts.first_observable_s:.1f} s)"
     if counts.bad:
         text += f"; {counts.bad} payloads were not tracks"
+    if counts.returns >= TWO_PUBLISHERS_RETURNS:
+        text += f"; {counts.returns} tracks went back in seq and time: two publishers on the key"
     if counts.tracks + counts.bad == 0:
         text += "; nothing arrived: is the daemon running, and zenoh connected to it?"
     return text
+
+
+def two_publishers_line(vehicle: str) -> str:
+    """The one line said when the tracks go back and forth: two daemons (or cameras) publish as ``vehicle``."""
+    return (
+        f"the tracks of {vehicle} go back and forth in seq and time: two publishers share the key (two daemons named "
+        f"{vehicle}? each one's status warns name_clash); these lines mix two vehicles' or two daemons' tracks"
+    )
 
 
 def interrupted_line(counts: WatchCounts) -> str:
@@ -346,6 +376,8 @@ def _receive(
                 print(f"not a track ({len(payload)} bytes): {exc}", file=err, flush=True)
             continue
         counts.add(track)
+        if counts.add_order(track):
+            print(two_publishers_line(track.vehicle), file=err, flush=True)
         print(payload.decode("utf-8", "replace") if as_json else format_track(track), file=out, flush=True)
 
 

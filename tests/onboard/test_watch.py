@@ -463,3 +463,60 @@ def test_ctrl_c_during_the_imports_is_the_interrupted_line_and_130(json_output):
     line, other = (r.stderr, r.stdout) if json_output else (r.stdout, r.stderr)
     assert line == INTERRUPTED_STARTING + "\n" and other == "", (r.stdout, r.stderr)
     assert INTERRUPTED_STARTING == interrupted_line(WatchCounts())  # the same line as a Ctrl-C later, nothing received
+
+
+def _watch_all(payloads: list[bytes]) -> tuple[WatchCounts, str, str]:
+    """``_receive`` over ``payloads`` until each is counted (10 s at most)."""
+    from onboard.app.watch import _receive
+
+    inbox: queue.Queue[bytes] = queue.Queue()
+    for p in payloads:
+        inbox.put(p)
+    counts, out, err = WatchCounts(), io.StringIO(), io.StringIO()
+    done = threading.Event()
+
+    def stop_when_all_counted() -> None:
+        deadline = time.monotonic() + 10.0
+        while counts.tracks + counts.bad < len(payloads) and time.monotonic() < deadline:
+            time.sleep(0.01)
+        done.set()
+
+    threading.Thread(target=stop_when_all_counted, daemon=True).start()
+    _receive(inbox, counts, seconds=10.0, as_json=False, out=out, err=err, hint="", stop=done)
+    return counts, out.getvalue(), err.getvalue()
+
+
+def _searching(seq: int, t_us: int) -> bytes:
+    return track_to_bytes(Track(vehicle="uav1", seq=seq, time_boot_us=t_us, state="searching", pose_valid=True))
+
+
+@pytest.mark.parametrize(
+    "case",
+    ["one camera, two daemons", "two cameras"],
+)
+def test_two_publishers_interleaving_on_the_track_key_are_said_once(case):
+    """Two daemons named uav1 publish on one key: of one camera, each frame comes twice; of two, two numberings and
+    clocks alternate.  The watcher says once that the lines mix two publishers, and the summary repeats it."""
+    from onboard.app.watch import summary_line
+
+    if case == "one camera, two daemons":
+        payloads = [_searching(k, 1_000_000 + 33_333 * k) for k in range(20) for _ in range(2)]
+    else:
+        payloads = [
+            p for k in range(20) for p in (_searching(k, 1_000_000 + 33_333 * k), _searching(500 + k, 9_000_000 + k))
+        ]
+    counts, out, err = _watch_all(payloads)
+    assert counts.tracks == 40 and out.count("\n") == 40
+    assert err.count("go back and forth") == 1 and "two daemons named uav1" in err and "name_clash" in err
+    assert "two publishers on the key" in summary_line(counts, 10.0)
+
+
+def test_a_publisher_that_restarts_once_is_no_second_publisher():
+    """A camera or daemon restarted: its numbering goes back once, then forward again."""
+    from onboard.app.watch import summary_line
+
+    payloads = [_searching(k, 20_000_000 + 33_333 * k) for k in range(10)]
+    payloads += [_searching(k, 1_000_000 + 33_333 * k) for k in range(10)]
+    counts, _out, err = _watch_all(payloads)
+    assert counts.returns == 1 and err == ""
+    assert "publishers" not in summary_line(counts, 10.0)
