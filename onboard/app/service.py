@@ -210,8 +210,9 @@ class OnboardService:
         self._zenoh_linked: tuple[int | None, int | None] = (None, None)
         self._sub = None
         self._twin_sub = None  # another daemon's status under this vehicle's name (name_clash)
-        #: when the newest status of another daemon of this name arrived (self._clock) and what it said, in words
-        self._twin_heard: tuple[float, str] | None = None
+        #: when the newest status of another daemon of this name arrived (self._clock), what the last one read said in
+        #: words, and when that one was read
+        self._twin_heard: tuple[float, str, float] | None = None
         self._track_pub = None
         self._objects_pub = None
         self._status_pub = None
@@ -426,8 +427,13 @@ class OnboardService:
     def _on_twin_status(self, sample) -> None:
         """A status on this vehicle's status key from another zenoh session: another daemon publishes as this
         vehicle.  Noted with what it says (any peer may publish there: whatever it sent, the clash is noted, and
-        nothing of it is used but the words)."""
-        self._twin_heard = (self._clock(), twin_words(sample.payload.to_bytes()))
+        nothing of it is used but the words).  Read at most once a second: a peer flooding the key costs a time
+        stamp per message, not a JSON parse."""
+        now, heard = self._clock(), self._twin_heard
+        if heard is not None and 0.0 <= now - heard[2] < 1.0:
+            self._twin_heard = (now, heard[1], heard[2])
+            return
+        self._twin_heard = (now, twin_words(sample.payload.to_bytes()), now)
 
     # ------------------------------------------------------------------ frames in (zenoh thread)
 
@@ -799,7 +805,8 @@ class OnboardService:
             if duplicate_senders is not None:
                 self.watchdog.autopilot_duplicate(now, duplicate_senders())
             self.watchdog.utc(now, self.utc.mapping)
-        self.watchdog.name_clash(now, self._twin_heard, status_key(self.config.vehicle))
+        heard = self._twin_heard
+        self.watchdog.name_clash(now, None if heard is None else heard[:2], status_key(self.config.vehicle))
         video = next((t for t in self.taps if isinstance(t, VideoTap)), None)
         if video is not None and video.streamer is not None:
             vc = self.config.video

@@ -1638,3 +1638,24 @@ def test_a_warning_flapping_with_every_frame_does_not_silence_the_periodic_statu
     assert len(flapping) <= 6.0 / WARNING_STATUS_MIN_S + 6.0 / interval_s + 2, len(flapping)
     assert len(quiet) >= int(3.9 / interval_s) - 1, (len(published), quiet[:5])
     assert all(b - a <= interval_s + 0.05 for a, b in zip(quiet, quiet[1:]))
+
+
+def test_another_daemons_statuses_are_read_at_most_once_a_second_however_fast_they_come(monkeypatch):
+    """Any peer may publish on the vehicle's status key: a flood costs a time stamp per message, not a JSON parse."""
+    import types
+
+    import onboard.app.service as service_module
+
+    svc, clock = _quiet_service()
+    parsed: list[bytes] = []
+    monkeypatch.setattr(service_module, "twin_words", lambda b: parsed.append(b) or f"words {len(parsed)}")
+    sample = types.SimpleNamespace(payload=types.SimpleNamespace(to_bytes=lambda: b"{}"))
+    for _ in range(50):  # 50 in 0.49 s
+        svc._on_twin_status(sample)
+        clock.t_s += 0.01
+    assert len(parsed) == 1 and svc._twin_heard[:2] == (clock() - 0.01, "words 1")
+    clock.t_s += 0.6
+    svc._on_twin_status(sample)  # a second after the one read: read again
+    assert len(parsed) == 2 and svc._twin_heard[1] == "words 2"
+    svc.watchdog.name_clash(clock(), svc._twin_heard[:2], "irtrack/uav1/status")
+    assert [w.code for w in svc.watchdog.active] == ["name_clash"]
