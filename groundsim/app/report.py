@@ -240,6 +240,7 @@ def cmd_report(args) -> int:
         recorder_drops_note,
         replay,
         rotated_part_note,
+        stopped_note,
     )
     from onboard.core.errors import InputError
 
@@ -259,6 +260,7 @@ def cmd_report(args) -> int:
             rotated_part_note(rec),
             more_files_note(rec, "python -m groundsim report"),
             recorder_drops_note(rec),
+            stopped_note(rec),
         ):
             if note is not None:
                 print(f"note: {note}")

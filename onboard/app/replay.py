@@ -127,7 +127,7 @@ from onboard.core.status import STATUS_SCHEMA  # noqa: E402
 from onboard.io.foxglove_messages import OBJECTS_SCHEMA, irframe_from_rawimage  # noqa: E402
 from onboard.io.mcap_read import FrameRef, read_recording  # noqa: E402
 from onboard.io.pose_json import pose_from_json  # noqa: E402
-from onboard.io.record import FRAME_INPUT_TOPIC, IMAGING_POSE_TOPIC, TRUTH_TOPIC  # noqa: E402
+from onboard.io.record import FRAME_INPUT_TOPIC, IMAGING_POSE_TOPIC, STOPPED_METADATA, TRUTH_TOPIC  # noqa: E402
 
 __all__ = [
     "Recording",
@@ -140,6 +140,7 @@ __all__ = [
     "no_frames_text",
     "recorder_drops",
     "recorder_drops_note",
+    "stopped_note",
     "rotated_part_note",
     "more_files_note",
     "main",
@@ -177,6 +178,8 @@ class Recording:
     # the files of a rotated recording replayed as one flight, in order (:func:`load_flight`; ``path`` is the first);
     # empty for one file
     parts: list = field(default_factory=list)
+    # the recorder's irtrack.stopped metadata (reason, stopped_utc) when it stopped before the flight ended, else None
+    stopped: dict | None = None
 
     @property
     def files(self) -> list[str]:
@@ -208,12 +211,15 @@ def load_recording(path: str) -> Recording:
     counts: dict[str, int] = {}
     first = last = None
     truncated = None
+    stopped = None
     for m in read_recording(path):
         if isinstance(m, dict):
             if "truncated" in m:
                 truncated = m["truncated"]
             elif m.get("metadata") == "irtrack" and not meta:
                 meta = {k: v for k, v in m.items() if k != "metadata"}
+            elif m.get("metadata") == STOPPED_METADATA:
+                stopped = {k: v for k, v in m.items() if k != "metadata"}
             continue
         index = counts.get(m.topic, 0)
         counts[m.topic] = index + 1
@@ -265,6 +271,7 @@ def load_recording(path: str) -> Recording:
         imaging_poses,
         statuses,
         input_log_ns,
+        stopped=stopped,
     )
 
 
@@ -321,6 +328,8 @@ def load_flight(paths: str | Sequence[str]) -> Recording:
         [s for r in recs for s in r.statuses],
         [t for r in recs for t in r.input_log_ns],
         [r.path for r in recs],
+        # (a stop ends the recording: only its last file can say one)
+        stopped=next((r.stopped for r in reversed(recs) if r.stopped is not None), None),
     )
 
 
@@ -358,6 +367,20 @@ def recorder_drops_note(rec: Recording) -> str | None:
             if inputs
             else ""
         )
+    )
+
+
+def stopped_note(rec: Recording) -> str | None:
+    """One line when the recorder stopped before the flight ended (its ``irtrack.stopped`` metadata), else None: the
+    replay ends where the recording did, not where the flight did."""
+    stopped = getattr(rec, "stopped", None)  # (a stand-in for a Recording may not have it)
+    if stopped is None:
+        return None
+    reason = str(stopped.get("reason") or "no reason given")
+    at = stopped.get("stopped_utc")
+    return (
+        f"{rec.name}: the recording stopped before the flight ended{f' (at {at} UTC)' if at else ''}: {reason}; the "
+        "flight went on unrecorded, so the replay ends where the recording did"
     )
 
 
@@ -902,7 +925,12 @@ def _run(args: argparse.Namespace, progress: _Progress) -> int:
         + (f", {len(rec.objects)} frames of objects" if rec.objects else "")
         + (f"; file cut short ({rec.truncated}): read to its last chunk" if rec.truncated else "")
     )
-    for note in (rotated_part_note(rec), more_files_note(rec, "python -m onboard.replay"), recorder_drops_note(rec)):
+    for note in (
+        rotated_part_note(rec),
+        more_files_note(rec, "python -m onboard.replay"),
+        recorder_drops_note(rec),
+        stopped_note(rec),
+    ):
         if note is not None:
             print(note)
     live = None

@@ -207,6 +207,7 @@ _RECORD = _section(
         "syncs": _INT,
         "stopped": _STR_N,
         "lost_files": _STRS,
+        "files_deleted": _INT,
     },
 )
 _LIVE_VIEW = _section(

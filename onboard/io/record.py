@@ -81,7 +81,10 @@ Metadata record ``irtrack``: ``config_yaml`` (the effective configuration, what 
 default), ``vehicle``, ``started_utc`` (when this file was opened), ``recorder`` (``onboard`` or ``groundsim``),
 ``file_index`` (0, 1, ... of a rotated recording) and ``recording_id`` (random, the same in every file of one
 recording: what tells a replay of several files that they are one flight's; the other fields do not -- a daemon
-restarted with the same configuration records another flight with the same ones).
+restarted with the same configuration records another flight with the same ones).  Metadata record
+``irtrack.stopped`` (:data:`STOPPED_METADATA`), in the last file of a recording that stopped before the flight ended
+(a disk short of ``record.min_free_mb``, a write the disk refused, the file deleted): ``reason`` (the status's
+``record.stopped``) and ``stopped_utc``; a replay says it.
 
 **Never stalls the caller**: every ``on_*`` method timestamps, numbers, appends to a deque and returns
 (microseconds); a writer thread encodes (protobuf, JSON) and writes.  When the backlog passes
@@ -167,6 +170,7 @@ __all__ = [
     "OBJECT_ANNOTATIONS_TOPIC",
     "IMAGING_POSE_TOPIC",
     "NOT_LOOKED_UP",
+    "STOPPED_METADATA",
     "TRUTH_OBJECTS_TOPIC",
     "TRUTH_ANNOTATIONS_TOPIC",
     "RecordConfig",
@@ -185,6 +189,8 @@ OBJECT_ANNOTATIONS_TOPIC = "/onboard/object_annotations"
 TRUTH_OBJECTS_TOPIC = "/groundsim/truth/objects"
 TRUTH_ANNOTATIONS_TOPIC = "/groundsim/truth/annotations"
 MB = 1_000_000
+#: the metadata record that says, in the file itself, why the recording stopped before the flight ended
+STOPPED_METADATA = "irtrack.stopped"
 #: of a close's time, what the writer keeps for finishing the file (the last chunk, the summary, the footer: a few
 #: small writes) after it stops writing the backlog
 FINISH_RESERVE_S = 0.2
@@ -365,6 +371,7 @@ class FlightRecorder:
         self.stopped: str | None = None
         #: files deleted or replaced under the recorder while it wrote them (their messages are lost)
         self.lost_files: list[str] = []
+        self.files_deleted = 0  # the oldest files removed under record.max_files
         self._next_lost_check_s = 0.0
         self._finish_ok = True  # the last file finished had its summary written
         self._write_until = math.inf  # time.monotonic() past which a closing writer drops the rest
@@ -493,6 +500,7 @@ class FlightRecorder:
             "syncs": self.syncs,
             "stopped": self.stopped,
             "lost_files": list(self.lost_files),
+            "files_deleted": self.files_deleted,
         }
 
     # ------------------------------------------------------------------ life cycle
@@ -519,6 +527,7 @@ class FlightRecorder:
         reason = self._short_of_space()
         if reason is not None:  # the flight goes on unrecorded: tracking is not held hostage by a full disk
             self.stopped = reason
+            self._note_stopped(reason)
             self._finish()  # a few kB: the configuration, no messages
             log.warning("recorder: not recording to %s: %s", self.path, reason)
             return
@@ -648,6 +657,7 @@ class FlightRecorder:
                     self.dropped_by_topic[topics.get(cid, "?")] += n
         # no file left: the one being written was deleted and the next could not be made (its folder gone with it)
         path = self.files[-1] if self.files else None
+        self._note_stopped(reason)
         self._finish()
         log.warning(
             "recorder: stopped recording: %s; %s (the flight goes on; later messages are dropped and"
@@ -700,6 +710,9 @@ class FlightRecorder:
                 old = self.files.pop(0)
                 try:
                     os.unlink(old)
+                    self.files_deleted += 1
+                    # said: the flight's beginning is gone, and record.files counts only the files kept
+                    log.info("recorder: deleted the oldest file %s (record.max_files %d)", old, s.max_files)
                 except OSError as exc:
                     log.warning("recorder: cannot delete %s: %s", old, exc)
         log.info("recording to %s", path)
@@ -718,6 +731,24 @@ class FlightRecorder:
             os.unlink(rotated_path(self.path, 0))
         except OSError as exc:
             log.warning("recorder: cannot remove the torn %s: %s", rotated_path(self.path, 0), exc)
+
+    def _note_stopped(self, reason: str) -> None:
+        """Write the :data:`STOPPED_METADATA` record into the file being finished, so that the file itself says why
+        the recording ends before the flight did (the log and the live status are gone by the time it is read).  Best
+        effort: a disk that refuses it refuses the summary after it too, which :meth:`_finish` says."""
+        w = self._writer
+        if w is None:
+            return
+        try:
+            w.add_metadata(
+                STOPPED_METADATA,
+                {
+                    "reason": reason,
+                    "stopped_utc": datetime.datetime.now(datetime.UTC).isoformat(timespec="milliseconds"),
+                },
+            )
+        except Exception as exc:  # noqa: BLE001 - the file is finished (or not) the same way after it
+            log.debug("recorder: cannot note the stop in %s: %s", self.files[-1] if self.files else "?", exc)
 
     def _finish(self) -> None:
         w, f = self._writer, self._file

@@ -182,6 +182,9 @@ def test_rotation_by_size_keeps_max_files(tmp_path):
     left = sorted(p.name for p in tmp_path.iterdir())
     assert len(left) == 2 and sorted(Path(f).name for f in rec.files) == left
     assert rec.files[-1] != path and rec.files[0] != path  # rotated past the first file, which was deleted
+    # every file made but the two kept was deleted, and counted: record.files counts only the kept
+    made = int(Path(rec.files[-1]).name.split(".")[1]) + 1
+    assert rec.files_deleted == made - 2 == rec.stats()["files_deleted"] and rec.stats()["files"] == 2
     seqs = []
     for name in left:
         for _, _c, m in _read_all(tmp_path / name):

@@ -141,8 +141,18 @@ def test_free_space_under_the_floor_stops_the_recording_with_a_complete_file(tmp
     handed = 10 + _record_until_stopped(rec)
     assert "150 MB free, under record.min_free_mb (200)" == rec.stopped and rec.write_errors == 0
     with open(rec.files[-1], "rb") as f:
-        n = sum(1 for _ in mcap_reader.make_reader(f).iter_messages())
+        reader = mcap_reader.make_reader(f)
+        n = sum(1 for _ in reader.iter_messages())
+        # the file itself says why it ends before the flight did, to the mcap package's reader too
+        said = {m.name: m.metadata for m in reader.iter_metadata()}
     assert n == rec.messages_written >= 10 and rec.messages_written + rec.dropped == handed
+    assert said[record.STOPPED_METADATA]["reason"] == rec.stopped and said[record.STOPPED_METADATA]["stopped_utc"]
+    from onboard.app.replay import load_recording, stopped_note
+
+    loaded = load_recording(rec.files[-1])
+    assert loaded.stopped["reason"] == rec.stopped
+    note = stopped_note(loaded)
+    assert "the recording stopped before the flight ended" in note and rec.stopped in note
 
 
 def test_no_room_at_start_records_nothing_and_says_so(tmp_path, monkeypatch, caplog):
@@ -154,8 +164,10 @@ def test_no_room_at_start_records_nothing_and_says_so(tmp_path, monkeypatch, cap
     assert rec.dropped == 1 and rec.messages_written == 0 and [Path(f).name for f in rec.files] == ["f.mcap"]
     with open(rec.files[0], "rb") as f:  # finished at once: the configuration, no message
         reader = mcap_reader.make_reader(f)
-        assert reader.get_summary().statistics.message_count == 0 and list(reader.iter_metadata())
+        assert reader.get_summary().statistics.message_count == 0
+        said = {m.name: m.metadata for m in reader.iter_metadata()}
     assert rec.stopped == "5 MB free, under record.min_free_mb (200)"
+    assert set(said) == {"irtrack", record.STOPPED_METADATA} and said[record.STOPPED_METADATA]["reason"] == rec.stopped
     assert "not recording to" in caplog.text and "min_free_mb" in caplog.text
 
 
