@@ -46,7 +46,8 @@ silent one is forgotten to make room), ``bad_time_unix_us``, ``no_origin``, ``st
 ``future`` (common time more than ``--max-age-s`` before or after this machine's clock), ``stamp_jump`` (a stamp
 whose ``UTC - boot`` offset jumped from its vehicle's: held until the next stamps say glitch or step,
 :class:`~onboard.io.fleet_wire.CommonClock`), ``camera_far`` / ``camera_jump`` (a camera no vehicle of the fleet can
-be at: :class:`~onboard.io.fleet_wire.StreamCheck`), ``time_sigma`` (a time sigma above ``--max-time-sigma-ms``: the
+be at: :class:`~onboard.io.fleet_wire.StreamCheck`), ``run_returned`` (a track of an earlier daemon run than the
+vehicle's newest ``run_id``: a second daemon under the name), ``time_sigma`` (a time sigma above ``--max-time-sigma-ms``: the
 track's ``time_unix_sigma_us``, or what the clock check finds; the log line says which), ``sigma_below_floor`` (a
 line-of-sight sigma below :data:`~onboard.estimation.fleet.MIN_BEARING_SIGMA_RAD`), ``clock_off`` (a vehicle the
 clock check names, off the others by more than the pairing window: its rays could not pair and would move a target),
@@ -67,8 +68,12 @@ prior and fused them with the bias they suggest, counted per solve; WARNING once
 clock check (below) never sees it.  The status lists refusals under ``rejected`` and events (:data:`EVENTS`) under
 ``events``.
 
+A vehicle whose tracks state a new ``run_id`` (its daemon restarted: object ids start again) is
+``vehicle_restarted`` (INFO): its objects leave their targets at once rather than lend their old targets to the new
+run's objects of the same ids.
+
 Name clash: when the tracks under one name interleave two streams (``seq`` / ``time_boot_us`` back and forth,
-the camera jumping farther than a vehicle flies: :class:`~onboard.io.fleet_wire.StreamCheck`), ``name_clash`` is
+the camera jumping farther than a vehicle flies, two ``run_id`` taking turns: :class:`~onboard.io.fleet_wire.StreamCheck`), ``name_clash`` is
 counted and warned once naming the vehicle and the remedy, the vehicle's objects leave their targets and its rays
 stay out until the clash clears (``name_clash_cleared``, INFO); the status lists it under ``name_clash``.
 
@@ -243,6 +248,7 @@ EVENTS = frozenset(
         "vehicle_silent",
         "vehicle_back",
         "vehicle_forgotten",
+        "vehicle_restarted",
         "fleet_origin_moved",
         "clock_inconsistent",
         "clock_step",
@@ -325,8 +331,8 @@ class Fusion:
             if v not in self._clashing:
                 self.counter.count(
                     "name_clash",
-                    f"{v}: two vehicles publish as {v!r} (its tracks' seq / time_boot_us go back and forth, or its "
-                    "camera jumps farther than a vehicle flies); its lines of sight are kept out of the fusion while "
+                    f"{v}: two vehicles publish as {v!r} (its tracks' seq / time_boot_us go back and forth, its "
+                    "camera jumps farther than a vehicle flies, or two daemon runs take turns); its lines of sight are kept out of the fusion while "
                     "this lasts: give each vehicle its own name (the daemon's 'vehicle' setting)",
                     subject=v,
                 )
@@ -443,7 +449,8 @@ class Fusion:
                 self.clock_check.add(vehicle, time_unix_us / 1e6, arrival_unix_s)
         los = track.los
         if los is None or track.origin is None or not track.measurement_valid:
-            self.stream_check.add(vehicle, track.seq, track.time_boot_us, 0.0, None, arrival_unix_s)
+            self._restarted(key, track, self.stream_check.add(vehicle, track.seq, track.time_boot_us, 0.0, None,
+                                                              arrival_unix_s, track.run_id))  # fmt: skip
             if los is None:
                 self.counter.count("no_line_of_sight", key, level=logging.DEBUG)
             elif not track.measurement_valid:
@@ -504,8 +511,12 @@ class Fusion:
         except (InputError, ArithmeticError, ValueError, np.linalg.LinAlgError) as exc:
             self.counter.count("bad_track", f"{key}: {type(exc).__name__}: {exc}")
             return
-        implausible = self.stream_check.add(
-            vehicle, track.seq, track.time_boot_us, t_s, ray.p_cam_ned_m, arrival_unix_s
+        implausible = self._restarted(
+            key,
+            track,
+            self.stream_check.add(
+                vehicle, track.seq, track.time_boot_us, t_s, ray.p_cam_ned_m, arrival_unix_s, track.run_id
+            ),
         )
         if vehicle in self._check_clashes(arrival_unix_s):
             self.counter.count("ray_name_clash", f"{key}: its name is shared", level=logging.DEBUG)
@@ -513,7 +524,9 @@ class Fusion:
         if implausible is not None:
             where = np.round(ray.p_cam_ned_m, 1).tolist()
             self.counter.count(
-                implausible, f"{key}: camera at {where} m in the fleet frame (seq {track.seq})", subject=vehicle
+                implausible,
+                f"{key}: camera at {where} m in the fleet frame (seq {track.seq}, run_id {track.run_id})",
+                subject=vehicle,
             )
             if implausible == "camera_far":
                 self._reanchor_if_alone(vehicle, track.origin, arrival_unix_s)
@@ -575,6 +588,20 @@ class Fusion:
             self._silent.discard(vehicle)
             self.counter.count("vehicle_back", f"{vehicle}: tracks again", level=logging.INFO, subject=vehicle)
         return True
+
+    def _restarted(self, key: str, track, verdict: str | None) -> str | None:
+        """``verdict`` of :meth:`StreamCheck.add`, but None for ``restarted``: the vehicle's daemon restarted (a new
+        ``run_id``), so its object ids start again and its old objects leave their targets now, said once."""
+        if verdict != "restarted":
+            return verdict
+        self.tracker.withdraw(track.vehicle, "its daemon restarted")
+        self.counter.count(
+            "vehicle_restarted",
+            f"{key}: a new daemon run (run_id {track.run_id}): its objects start again",
+            level=logging.INFO,
+            subject=track.vehicle,
+        )
+        return None
 
     def _reanchor_if_alone(self, vehicle: str, origin: GeodeticOrigin, now_unix_s: float) -> None:
         """Give up a fleet frame that only the vehicle which set it has been accepted in, once ``vehicle``'s cameras

@@ -671,7 +671,7 @@ def replay(
     the objects image chain, which needs each frame's pose)."""
     from onboard.app.observers import frame_objects
     from onboard.core.counters import RejectCounter
-    from onboard.core.track import track_to_json
+    from onboard.core.track import is_run_id, track_to_json
     from onboard.pipeline.frame_pipeline import FramePipeline, FrameRejected, make_estimator, make_tracker
 
     if jobs not in (1, 2):
@@ -687,6 +687,8 @@ def replay(
     tracker = make_tracker(config) if conn is None else _PipedTracker(conn)
     utc_of = _recorded_utc(rec.tracks)
     pipe = FramePipeline(config, poses, tracker, make_estimator(config), config.pose.geodetic_origin(), counter=counter)
+    # the recorded run's id: a replay reproduces that run's tracks (a recording is one daemon run; none: older files)
+    pipe.run_id = next((t["run_id"] for t in rec.tracks if is_run_id(t.get("run_id"))), None)
     out: list = []
     out_objects: list = []
     chain_used: dict = {}  # (seq, time_boot_us) -> the image chain's poses of that frame used so far

@@ -93,7 +93,7 @@ from onboard.core.errors import InputError
 from onboard.core.irframe import IrFrame, IrFrameError, check_payload_size, decode_irframe
 from onboard.core.pose import PoseBuffer
 from onboard.core.status import RollingStats, build_status
-from onboard.core.track import Track, track_to_bytes
+from onboard.core.track import Track, new_run_id, track_to_bytes
 from onboard.core.utc_clock import UtcClock, with_utc
 from onboard.io.record import NOT_LOOKED_UP
 from onboard.io.zenoh_session import FRAME_SCHEMA, foreign_schema, frame_key, status_key
@@ -191,6 +191,8 @@ class OnboardService:
             else None,
             clock_ns=clock_ns,
         )
+        # this run's id on every track and status: a consumer tells a restarted daemon (ids and origin anew) by it
+        self.run_id = self.pipeline.run_id = new_run_id()
         # the output taps, and the newest track for the main thread (the GCS camera, FOLLOW_TARGET, status)
         self.newest = NewestTrack(clock)
         self.taps: list[FrameObserver] = make_observers(config, self.pipeline.intrinsics, clock_ns, clock)
@@ -898,6 +900,7 @@ class OnboardService:
         warnings: list[Mapping[str, str]] = list(self.watchdog.active_dicts())
         status = build_status(
             vehicle=self.config.vehicle,
+            run_id=self.run_id,
             uptime_s=now - self._started_s,
             frames_in=frames_in,
             frames_processed=self.pipeline.frames_processed,

@@ -38,7 +38,7 @@ import sys
 import threading
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TextIO
 
 from onboard.app.cli_args import OneLineParser, add_zenoh_options, nonnegative_float
@@ -60,6 +60,7 @@ __all__ = [
     "format_fleet_track",
     "summary_line",
     "two_publishers_line",
+    "new_run_line",
     "interrupted_line",
     "build_parser",
     "zenoh_config",
@@ -98,6 +99,16 @@ class WatchCounts:
     #: only move forward, so these are two publishers interleaving on the key (:data:`TWO_PUBLISHERS_RETURNS`)
     returns: int = 0
     _last: tuple[int, int] | None = None
+    #: the daemon runs (tracks' ``run_id``) seen, in the order first seen: more than one, a restart (or two daemons)
+    runs: list[str] = field(default_factory=list)
+
+    def add_run(self, track: Track) -> str | None:
+        """Note ``track``'s ``run_id``; the line to say when it is a run not seen before after another, else None."""
+        run = track.run_id
+        if run is None or run in self.runs:
+            return None
+        self.runs.append(run)
+        return None if len(self.runs) == 1 else new_run_line(track.vehicle, self.runs[-2], run)
 
     def add_order(self, track: Track) -> bool:
         """Note ``track``'s place in the stream; True when it is the :data:`TWO_PUBLISHERS_RETURNS`-th return (say it
@@ -247,11 +258,22 @@ def summary_line(counts: WatchCounts, seconds: float) -> str:
         text += f" (first at t {counts.first_observable_s:.1f} s)"
     if counts.bad:
         text += f"; {counts.bad} payloads were not tracks"
+    if len(counts.runs) > 1:
+        text += f"; {len(counts.runs)} daemon runs (run_id {', '.join(counts.runs)})"
     if counts.returns >= TWO_PUBLISHERS_RETURNS:
         text += f"; {counts.returns} tracks went back in seq and time: two publishers on the key"
     if counts.tracks + counts.bad == 0:
         text += "; nothing arrived: is the daemon running, and zenoh connected to it?"
     return text
+
+
+def new_run_line(vehicle: str, before: str, run: str) -> str:
+    """The line said when ``vehicle``'s tracks come from a daemon run not seen before (its ``run_id``)."""
+    return (
+        f"{vehicle}: tracks of a new daemon run (run_id {run} after {before}): the daemon restarted, and its track "
+        "ids, estimate_epoch and local NED origin start again (or a second daemon publishes under this name, if "
+        "the tracks now go back and forth in time)"
+    )
 
 
 def two_publishers_line(vehicle: str) -> str:
@@ -376,6 +398,9 @@ def _receive(
                 print(f"not a track ({len(payload)} bytes): {exc}", file=err, flush=True)
             continue
         counts.add(track)
+        new_run = counts.add_run(track)
+        if new_run is not None:
+            print(new_run, file=err, flush=True)
         if counts.add_order(track):
             print(two_publishers_line(track.vehicle), file=err, flush=True)
         print(payload.decode("utf-8", "replace") if as_json else format_track(track), file=out, flush=True)

@@ -252,6 +252,14 @@ _ZENOH = _section(
 STATUS_JSON_KEYS: tuple[tuple[str, dict[str, Any]], ...] = (
     ("schema", {"type": "string", "const": STATUS_SCHEMA}),
     ("vehicle", {"type": "string"}),
+    (
+        "run_id",
+        {
+            "type": ["string", "null"],
+            "description": "the daemon's run, drawn at its start, the same as its tracks' run_id: a new value, a "
+            "restarted daemon; two taking turns on one key, two daemons publishing as one vehicle",
+        },
+    ),
     ("uptime_s", {"type": ["number", "null"]}),
     (
         "frames",
@@ -436,6 +444,7 @@ class RollingStats:
 def build_status(
     *,
     vehicle: str,
+    run_id: str | None = None,
     uptime_s: float,
     frames_in: int,
     frames_processed: int,
@@ -466,6 +475,7 @@ def build_status(
 ) -> dict[str, Any]:
     """The ``irtrack.status/1`` object (published at 1 Hz on ``irtrack/<vehicle>/status``).
 
+    ``run_id``: the daemon's run (its tracks' ``run_id``: :func:`onboard.core.track.new_run_id`), None unstated.
     ``frames``: ``in`` (payloads received), ``missing`` (frames the camera numbered that never arrived: lost on the way,
     from the gaps in their sequence numbers, each sender's numbering apart: a restart's new numbering or a second
     sender's is no gap; :class:`onboard.pipeline.admission.ArrivalGaps`), ``processed`` (a Track
@@ -504,6 +514,7 @@ def build_status(
     return {
         "schema": STATUS_SCHEMA,
         "vehicle": vehicle,
+        "run_id": run_id,
         "uptime_s": json_number(uptime_s),
         "frames": {
             "in": int(frames_in),

@@ -73,6 +73,12 @@ estimate_epoch      integer >= 0                 (new, optional; 0 when absent) 
                                                  started again and holds nothing from before (a change of
                                                  selection or track, a pose discontinuity, an autopilot
                                                  reboot; the reason is in the daemon's log)
+run_id              string or null               (new, optional; null when absent) the daemon's run: 16 hex
+                                                 digits drawn at its start, the same on every track and
+                                                 status of that run.  A new value says the daemon restarted:
+                                                 its ``track_id``, ``estimate_epoch`` and local NED
+                                                 ``origin`` start again; two values taking turns are two
+                                                 daemons publishing as one vehicle
 ==================  ===========================  ===================================================
 
 What changed from ``irtrack.track/1``: every key of /1 keeps its name, type and unit.  The meaning of
@@ -132,6 +138,9 @@ __all__ = [
     "track_to_bytes",
     "track_from_json",
     "json_number",
+    "RUN_ID_HEX_DIGITS",
+    "is_run_id",
+    "new_run_id",
 ]
 
 TRACK_SCHEMA = "irtrack.track/2"
@@ -139,6 +148,22 @@ READABLE_TRACK_SCHEMAS = ("irtrack.track/1", TRACK_SCHEMA)  # /1 has the same ke
 TRACK_STATES = ("searching", "tracking", "coasting", "lost")
 #: a camera clock compensated by more than this (a minute) is no clock the time-offset estimator reports
 MAX_COMPENSATED_US = 60_000_000
+#: a daemon run's id: 64 random bits, lower-case hex (a restart draws another; two runs share one with odds 2^-64)
+RUN_ID_HEX_DIGITS = 16
+
+
+def new_run_id() -> str:
+    """A fresh run id (:data:`RUN_ID_HEX_DIGITS` hex digits from the OS's random source)."""
+    import secrets
+
+    return secrets.token_hex(RUN_ID_HEX_DIGITS // 2)
+
+
+def is_run_id(value: object) -> bool:
+    """Whether ``value`` is a run id as :func:`new_run_id` makes them."""
+    return isinstance(value, str) and len(value) == RUN_ID_HEX_DIGITS and all(c in "0123456789abcdef" for c in value)
+
+
 #: the altitudes (WGS84, m) a vehicle's local origin can have: below the lowest land to above any balloon; a garbage
 #: altitude beyond them (1e200) makes no frame anyone can compute in
 ORIGIN_ALT_RANGE_M = (-1_000.0, 100_000.0)
@@ -429,6 +454,7 @@ class Track:
     time_unix_sigma_us: int | None = None
     compensated_us: int = 0
     estimate_epoch: int = 0
+    run_id: str | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.vehicle, str) or not self.vehicle:
@@ -541,6 +567,10 @@ class Track:
             setattr_(self, "compensated_us", int(c))
         elif abs(c) > MAX_COMPENSATED_US:
             raise InputError(f"Track.compensated_us must be within +-{MAX_COMPENSATED_US} us, got {c!r}")
+        if self.run_id is not None and not is_run_id(self.run_id):
+            raise InputError(
+                f"Track.run_id must be {RUN_ID_HEX_DIGITS} lower-case hex digits or None, got {self.run_id!r}"
+            )
 
     def with_time_unix(self, time_unix_us: int | None, time_unix_sigma_us: int | None) -> Track:
         """This track with its UTC stamp: the two fields checked as ``__post_init__`` checks them, every
@@ -631,6 +661,7 @@ def track_to_json(track: Track) -> dict[str, Any]:
         "time_unix_sigma_us": track.time_unix_sigma_us,
         "compensated_us": track.compensated_us,
         "estimate_epoch": track.estimate_epoch,
+        "run_id": track.run_id,
     }
 
 
@@ -745,6 +776,15 @@ TRACK_JSON_KEYS: tuple[tuple[str, dict[str, Any]], ...] = (
             "description": "the 3-D estimator's restarts since the daemon started: a new value, a new estimate",
         },
     ),
+    (
+        "run_id",
+        {
+            "type": ["string", "null"],
+            "pattern": f"^[0-9a-f]{{{RUN_ID_HEX_DIGITS}}}$",
+            "description": "the daemon's run, drawn at its start: a new value, a restarted daemon (track ids, "
+            "estimate_epoch and origin start again); two taking turns, two daemons as one vehicle",
+        },
+    ),
 )
 
 
@@ -854,4 +894,5 @@ def _track_from_json(obj: Mapping[str, Any] | str | bytes) -> Track:
         time_unix_sigma_us=obj.get("time_unix_sigma_us"),
         compensated_us=obj.get("compensated_us", 0),
         estimate_epoch=obj.get("estimate_epoch", 0),
+        run_id=obj.get("run_id"),
     )

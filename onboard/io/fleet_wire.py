@@ -67,7 +67,10 @@ redelivery, a replay) is refused as ``duplicate`` and is none, unless its camera
 where that message's was: then it is a second vehicle's on the same counts (``camera_jump``, an anomaly); a new
 local origin two (the first track there is refused as a jump, the next one, consistent with it, is the stream's new
 place).  A single camera jump (a glitch, a track placed against another origin) is refused alone (``camera_jump``), and a camera farther than
-``MAX_CAMERA_DISTANCE_M`` from the fleet's origin is refused outright (``camera_far``).
+``MAX_CAMERA_DISTANCE_M`` from the fleet's origin is refused outright (``camera_far``).  A daemon states its run
+(the track's ``run_id``): a new one is a restart, said (``restarted``) and no anomaly -- the stream's state starts
+again, its camera at a new origin included -- and a message of an earlier run after a newer one is two daemons
+taking turns under the name (``run_returned``, refused, an anomaly each time).
 
 Frames: each vehicle's ``camera_ned_m`` / ``los_ned`` are in its own local NED frame (its track's
 ``origin``); both are mapped into the fleet's frame (the first origin seen, or a configured one) by the exact
@@ -170,6 +173,8 @@ MAX_CAMERA_DISTANCE_M = 200_000.0
 
 #: how many of a stream's newest messages a repeat is recognised among (a few seconds at 30 Hz)
 RECENT_MESSAGES = 128
+#: how many of a stream's daemon runs are remembered: a run back from among them is a second daemon's
+RECENT_RUNS = 8
 
 
 @dataclass
@@ -183,6 +188,8 @@ class _Stream:
     seen: Recent = field(default_factory=lambda: Recent(RECENT_MESSAGES))
     # the camera each of those carried: a repeat is the same message, at the same place
     cameras: dict = field(default_factory=dict)
+    # the daemon runs (run_id) stated, newest last: a new one is a restart, an earlier one back is a second daemon
+    runs: deque = field(default_factory=lambda: deque(maxlen=RECENT_RUNS))
 
 
 class StreamCheck:
@@ -238,18 +245,42 @@ class StreamCheck:
         return older
 
     def add(
-        self, vehicle: str, seq: int, time_boot_us: int, t_s: float, p_cam_ned_m, arrival_unix_s: float
+        self,
+        vehicle: str,
+        seq: int,
+        time_boot_us: int,
+        t_s: float,
+        p_cam_ned_m,
+        arrival_unix_s: float,
+        run_id: str | None = None,
     ) -> str | None:
+        """One track of ``vehicle`` (the class docstring); ``run_id``: its daemon's run, None when not stated.
+        ``restarted`` for the first track of a run after another (the stream starts again from it, no anomaly: take
+        its ray), ``run_returned`` for one of an earlier run after a newer one (refuse it; an anomaly)."""
         p = None if p_cam_ned_m is None else np.asarray(p_cam_ned_m, dtype=float)
         if p is not None and not float(np.linalg.norm(p)) <= MAX_CAMERA_DISTANCE_M:
             return "camera_far"
         st = self._streams.get(vehicle)
+        if st is not None and run_id is not None and st.runs and run_id != st.runs[-1]:
+            if run_id in st.runs:  # an earlier run back after a newer one: two daemons take turns under the name
+                return self._judge(vehicle, st, True, arrival_unix_s, "run_returned")
+            runs, anomalies = st.runs, st.anomalies
+            st = self._streams[vehicle] = _Stream(seq, time_boot_us, runs=runs, anomalies=anomalies)
+            self._note(st, seq, time_boot_us, p)
+            st.runs.append(run_id)
+            if p is not None:
+                st.anchor = (t_s, p)
+            return "restarted"
         if st is None:
             st = self._streams[vehicle] = _Stream(seq, time_boot_us)
             self._note(st, seq, time_boot_us, p)
+            if run_id is not None:
+                st.runs.append(run_id)
             if p is not None:
                 st.anchor = (t_s, p)
             return None
+        if run_id is not None and not st.runs:
+            st.runs.append(run_id)
         if (seq, time_boot_us) in st.seen:
             first = st.cameras.get((seq, time_boot_us))
             if p is None or first is None or float(np.linalg.norm(p - first)) <= self.slack_m:

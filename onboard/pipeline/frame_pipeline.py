@@ -256,6 +256,8 @@ class FramePipeline:
             raise InputError(f"FramePipeline origin must be a GeodeticOrigin or None, got {type(origin).__name__}")
         self.config = config
         self.vehicle = config.vehicle
+        # the daemon's run (onboard.core.track.new_run_id), stamped on every track; None: none stated (a replay)
+        self.run_id: str | None = None
         self.intrinsics = config.camera.pinhole()
         self.pose_source = pose_source
         self.tracker = tracker
@@ -966,6 +968,7 @@ class FramePipeline:
             origin=origin,
             compensated_us=self._shift_us if pose is not None else 0,
             estimate_epoch=self.estimator_resets,  # the track says when its estimate started again
+            run_id=self.run_id,
         )
         if est is None:
             if residual is not None:

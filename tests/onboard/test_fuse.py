@@ -1201,3 +1201,38 @@ def test_a_fusion_node_that_hears_nothing_says_so(monkeypatch, capsys):
     assert fuse_app.main(["--zenoh-listen", endpoint, "--seconds", "1.2"]) == 0  # it sets up its own log handler
     warned = [ln for ln in capsys.readouterr().err.splitlines() if "nothing received" in ln]
     assert len(warned) == 1 and endpoint in warned[0] and "--zenoh-gossip-autoconnect" in warned[0]
+
+
+RUN_A, RUN_B = "00000000000000aa", "00000000000000bb"
+
+
+def test_a_daemon_restart_stated_by_a_new_run_id_withdraws_its_objects_once_and_fuses_on():
+    """uav2's daemon restarts (a new run_id) while its camera's numbering goes on: its old objects leave their targets
+    at once (its object ids start again), said once, no anomaly against the name, and the fusion goes on."""
+    fusion = new_fusion()
+    rng = np.random.default_rng(24)
+    run_pair_with(fusion, np.arange(0.0, 1.0, 1 / 30), rng, bad=lambda k, obj: obj.update(run_id=RUN_A))
+    assert len(fusion.tracker.targets) == 1
+    out = run_pair_with(fusion, np.arange(1.0, 2.0, 1 / 30), rng, bad=lambda k, obj: obj.update(run_id=RUN_B), seq0=30)
+    st = fusion.status(T0_UNIX_S + 2.0)
+    assert st["events"]["vehicle_restarted"] == 1 and st["name_clash"] == [] and fusion.counter["ray_name_clash"] == 0
+    assert "run_returned" not in st["rejected"]
+    last = [p for k, p in out if k == fleet_track_key()][-1]
+    assert sorted(c["vehicle"] for c in last["vehicles"]) == ["uav1", "uav2"]
+
+
+def test_two_daemon_runs_taking_turns_under_one_name_are_a_name_clash():
+    """Two daemons named uav2 reading one camera: the same frames, two run_ids by turns.  Each message of the run
+    heard before the newest is refused (run_returned) and counts against the name: a clash, named once."""
+    fusion = new_fusion()
+    rng = np.random.default_rng(25)
+    for k, t in enumerate(np.arange(0.0, 2.0, 1 / 30)):
+        fusion.receive("irtrack/uav1/track", payload_of(UAV1, t, rng, k), T0_UNIX_S + t + 0.005)
+        for run in (RUN_A, RUN_B):
+            obj = _payload_dict(UAV2, t, rng, k, run_id=run)
+            fusion.receive("irtrack/uav2/track", json.dumps(obj).encode(), T0_UNIX_S + t + 0.006)
+        fusion.flush()
+    st = fusion.status(T0_UNIX_S + 2.0)
+    assert st["name_clash"] == ["uav2"] and st["events"]["name_clash"] == 1
+    # each refused until the clash is named (then as ray_name_clash); B's first message was taken as a restart
+    assert st["rejected"]["run_returned"] == 3 and st["events"]["vehicle_restarted"] == 1

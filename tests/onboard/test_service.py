@@ -38,7 +38,7 @@ from onboard.core.frames import geodetic_from_ned  # noqa: E402
 from onboard.core.irframe import decode_irframe  # noqa: E402
 from onboard.core.pose import PoseBuffer  # noqa: E402
 from onboard.core.status import STATUS_SCHEMA  # noqa: E402
-from onboard.core.track import track_from_json  # noqa: E402
+from onboard.core.track import is_run_id, track_from_json  # noqa: E402
 from onboard.estimation.sliding import TrackEstimate  # noqa: E402
 from tests.fakes import FakeAutopilot, FakeClock, quiet_link_status  # noqa: E402
 from tests.integration_helpers import loopback_daemon_command  # noqa: E402
@@ -547,6 +547,8 @@ def test_daemon_end_to_end(tmp_path, daemon_env):
         assert st["frames"]["rejected"] >= 24 and st["frames"]["processed"] >= 20
         assert st["frames"]["in"] >= st["frames"]["processed"] + st["frames"]["rejected"]
         assert st["link"]["state"] == "connected" and st["link"]["autopilot_sysid"] == 1
+        # one run: every track and status states its id (a restarted daemon draws another)
+        assert is_run_id(st["run_id"]) and {t.run_id for t in got_tracks} == {st["run_id"]}
         # the session as configured, and the one peer it has: this test's session (no router on this loopback)
         assert st["zenoh"]["connect"] == [f"tcp/127.0.0.1:{zport}"]
         assert (st["zenoh"]["routers"], st["zenoh"]["peers"]) == (0, 1)

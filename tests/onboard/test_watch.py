@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import json
 import queue
@@ -520,3 +521,20 @@ def test_a_publisher_that_restarts_once_is_no_second_publisher():
     counts, _out, err = _watch_all(payloads)
     assert counts.returns == 1 and err == ""
     assert "publishers" not in summary_line(counts, 10.0)
+
+
+def test_a_daemon_restarted_under_a_running_camera_is_said_once_by_its_new_run_id():
+    """The camera's numbering goes on through the daemon's restart, so only the run_id tells it: said once on
+    stderr, and the summary lists the runs."""
+    from onboard.app.watch import summary_line
+
+    def tracked(seq: int, run: str) -> bytes:
+        t = Track(vehicle="uav1", seq=seq, time_boot_us=1_000_000 + 33_333 * seq, state="searching", pose_valid=True)
+        return track_to_bytes(dataclasses.replace(t, run_id=run))
+
+    a, b = "0123456789abcdef", "fedcba9876543210"
+    counts, _out, err = _watch_all([tracked(k, a) for k in range(10)] + [tracked(k, b) for k in range(10, 20)])
+    assert err.count("new daemon run") == 1 and f"run_id {b} after {a}" in err and "start again" in err
+    assert counts.runs == [a, b] and f"2 daemon runs (run_id {a}, {b})" in summary_line(counts, 10.0)
+    counts, _out, err = _watch_all([tracked(k, a) for k in range(10)])  # one run: nothing said
+    assert err == "" and "daemon runs" not in summary_line(counts, 10.0)
