@@ -152,6 +152,11 @@ MAX_COMPENSATED_US = 60_000_000
 RUN_ID_HEX_DIGITS = 16
 
 
+#: run ids already found well formed (a few: the daemon's own, a fusion's vehicles'), so that each track's check is
+#: a set look-up
+_RUN_IDS_CHECKED: set[str] = set()
+
+
 def new_run_id() -> str:
     """A fresh run id (:data:`RUN_ID_HEX_DIGITS` hex digits from the OS's random source)."""
     import secrets
@@ -567,10 +572,13 @@ class Track:
             setattr_(self, "compensated_us", int(c))
         elif abs(c) > MAX_COMPENSATED_US:
             raise InputError(f"Track.compensated_us must be within +-{MAX_COMPENSATED_US} us, got {c!r}")
-        if self.run_id is not None and not is_run_id(self.run_id):
-            raise InputError(
-                f"Track.run_id must be {RUN_ID_HEX_DIGITS} lower-case hex digits or None, got {self.run_id!r}"
-            )
+        run = self.run_id
+        # (a daemon's every track states the same one; a value that is no string, a list too, is checked and refused)
+        if run is not None and not (type(run) is str and run in _RUN_IDS_CHECKED):
+            if not is_run_id(run):
+                raise InputError(f"Track.run_id must be {RUN_ID_HEX_DIGITS} lower-case hex digits or None, got {run!r}")
+            if len(_RUN_IDS_CHECKED) < 64:
+                _RUN_IDS_CHECKED.add(run)
 
     def with_time_unix(self, time_unix_us: int | None, time_unix_sigma_us: int | None) -> Track:
         """This track with its UTC stamp: the two fields checked as ``__post_init__`` checks them, every

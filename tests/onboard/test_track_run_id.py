@@ -21,7 +21,7 @@ def test_a_new_run_id_is_16_hex_digits_and_another_each_time():
     assert len(ids) == 100 and all(is_run_id(i) and len(i) == RUN_ID_HEX_DIGITS for i in ids)
 
 
-@given(st.text(max_size=20) | st.integers() | st.none() | st.binary(max_size=8))
+@given(st.text(max_size=20) | st.integers() | st.none() | st.binary(max_size=8) | st.lists(st.integers(), max_size=2))
 def test_a_run_id_is_refused_unless_it_is_16_lower_case_hex_digits(value):
     if value is None or is_run_id(value):
         assert _track(run_id=value).run_id == value
