@@ -82,6 +82,7 @@ def frame_objects(pipeline: Any, track: Track | None) -> dict[str, Any] | None:
         track.compensated_us,
         rays,
         getattr(pipeline, "attitude_sigma_rad", 0.0),
+        track.run_id,
     )
 
 

@@ -342,6 +342,7 @@ def objects_message(
     compensated_us: int = 0,
     rays: bool = True,
     attitude_sigma_rad: float = 0.0,
+    run_id: str | None = None,
 ) -> dict:
     """The ``irtrack/<vehicle>/objects`` message of one frame (JSON-ready, schema ``irtrack.objects/1``):
     ``time_boot_us``, ``time_unix_us`` and ``time_unix_sigma_us`` (the frame's UTC and its 1-sigma, us, as in
@@ -354,12 +355,14 @@ def objects_message(
     and ``primary``.  A coasting object's centre is the chain's prediction: its ``los_ned`` and ``los_sigma_rad``
     are null, as the track's on a coasting frame (a prediction carried over a gap in the telemetry or the frames
     went tens of degrees off while a sigma grown by a pixel a frame said a few).  ``rays`` False (the frame has no
-    pose, or the daemon withholds its geometry): every ``los_ned`` and ``los_sigma_rad`` null, as the track's."""
+    pose, or the daemon withholds its geometry): every ``los_ned`` and ``los_sigma_rad`` null, as the track's.
+    ``run_id``: the daemon's run, as the track's (its object ids start again with a new one); the key only when
+    given."""
 
     def measured_ray(o) -> bool:
         return o.los_ned is not None and rays and o.state != "coasting"
 
-    return {
+    message = {
         "schema": "irtrack.objects/1",
         "time_boot_us": int(time_boot_us),
         "time_unix_us": None if time_unix_us is None else int(time_unix_us),
@@ -383,3 +386,6 @@ def objects_message(
             if o.state in ("confirmed", "coasting")
         ],
     }
+    if run_id is not None:
+        message["run_id"] = run_id
+    return message

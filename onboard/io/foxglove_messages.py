@@ -209,6 +209,10 @@ JSON_SCHEMAS: dict[str, dict[str, Any]] = {
                 },
                 "frame_index": {"type": "integer", "description": "the image chain's frame count, from 0"},
                 "primary_id": {"type": ["integer", "null"], "description": "the selected target's id"},
+                "run_id": {
+                    "type": "string",
+                    "description": "the daemon's run, as the track's (optional: absent when not stated)",
+                },
                 "objects": {
                     "type": "array",
                     "items": {

@@ -435,3 +435,15 @@ def test_the_objects_line_of_sight_sigma_counts_the_attitude_error_as_the_tracks
         assert prim[0]["los_sigma_rad"] >= rig.pipe.attitude_sigma_rad > 0
         compared += 1
     assert compared >= 10
+
+
+def test_the_objects_message_states_the_tracks_run_and_no_key_without_one():
+    """A restarted daemon's object ids start again, as its track ids: the objects say its run as the track does."""
+    config = build_config({"imaging": {"chain": "objects"}, "estimator": {"enabled": False}})
+    rig = Rig(estimator=None, config=config)
+    rig.pipe.run_id = "0123456789abcdef"
+    msgs = [frame_objects(rig.pipe, rig.step(k)) for k in range(15)]
+    assert msgs and all(m["run_id"] == "0123456789abcdef" for m in msgs if m is not None)
+    rig.pipe.run_id = None  # (a replay of a recording older than run ids: the key absent, as in the recording)
+    msg = frame_objects(rig.pipe, rig.step(15))
+    assert msg is not None and "run_id" not in msg
