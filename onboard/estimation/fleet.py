@@ -79,7 +79,8 @@ chi-square degree of freedom per window, independent of the first (docs/fleet.md
 Verdict (the single-vehicle estimator's discipline, :mod:`onboard.estimation.map_estimator`, with its
 thresholds from :class:`~onboard.estimation.map_estimator.MapConfig`): ``observable`` when at least two
 vehicles contribute, the range sigma seen from each contributing vehicle's newest camera position is below
-``observability_max_sigma_range_ratio`` (5.5 %) of its range (``range_sigma_ratio`` is the worst of them),
+``observability_max_sigma_range_ratio`` of its range (2 % in :attr:`FleetConfig.verdict`, tighter than the single
+vehicle's 5.5 %; ``range_sigma_ratio`` is the worst of them),
 the residuals pass ``chi2.sf(J, d) >= adequacy_p_min`` with at least ``MIN_RESIDUAL_DOF`` (0.5) residual degrees
 of freedom to test (a solution that fits any rays exactly is never observable, whatever its covariance says) and
 the covariance is
