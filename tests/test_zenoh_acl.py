@@ -209,6 +209,15 @@ def test_only_the_camera_publishes_frames_and_only_the_daemon_tracks(tls_dir):
             assert leaked == [], f"{key} from unauthorised nodes reached the ground: {leaked}"
             read = [p for p in spy.got if not p.startswith(b"forbidden intruder")]  # its own puts reach it locally
             assert read == [], f"the intruder read {key}: {read[:3]}"
+        # a daemon hears another daemon's status (two daemons under one vehicle name warn name_clash), and no track
+        heard = Inbox(n["daemon_rx"], STATUS_KEY)
+        assert heard.wait_for(
+            b"status of another daemon", lambda: n["daemon"].put(STATUS_KEY, b"status of another daemon")
+        )
+        tracks_heard = Inbox(n["daemon_rx"], TRACK_KEY)
+        n["daemon"].put(TRACK_KEY, b"a track")
+        time.sleep(SETTLE_S)
+        assert tracks_heard.got == []
     finally:
         stack.close()
 
