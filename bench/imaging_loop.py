@@ -140,7 +140,9 @@ def main(argv: list[str]) -> None:
         " rotation, else takes it extrapolated (the daemon's imaging.pose_wait_ms); default: every frame's"
         " telemetry fed until it brackets the frame",
     )
-    a = ap.parse_args(argv)
+    # '--scene --help' (or '--loop --help'): the mode's help, not 'expected at least one argument' for the mode's
+    # option, which argparse says before it reads --help
+    a = ap.parse_args(["--help"] if {"-h", "--help"} & set(argv) else argv)
     import dataclasses
 
     base = load_base_config(a.onboard_config)

@@ -663,7 +663,9 @@ def main(argv: list[str]) -> None:
         help="draw each run's objects timeline (who was tracked when, as groundsim eval's <scenario>_objects.png) "
         "into DIR/<scene>-s<seed>-<chain>.png",
     )
-    a = ap.parse_args(argv)
+    # '--scene --help' (or '--loop --help'): the mode's help, not 'expected at least one argument' for the mode's
+    # option, which argparse says before it reads --help
+    a = ap.parse_args(["--help"] if {"-h", "--help"} & set(argv) else argv)
     cv2.setNumThreads(1)
     chains = ("tracker", "objects") if a.chain == "both" else (CHAIN_ALIASES.get(a.chain, a.chain),)
     print(

@@ -34,6 +34,17 @@ def test_help_lists_the_flags():
     assert "--reference-scenes" in proc.stdout and "--stages" in proc.stdout
 
 
+@pytest.mark.parametrize("mode, flag", [("--scene", "--misses"), ("--loop", "--seeds")])
+def test_each_imaging_mode_takes_help_without_its_mode_argument(mode, flag):
+    """'bench.imaging --scene --help' said 'expected at least one argument' (the top-level help says each mode has its
+    own --help)."""
+    proc = subprocess.run(
+        [sys.executable, "-m", "bench.imaging", mode, "--help"], cwd=REPO, capture_output=True, text=True, timeout=120
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert flag in proc.stdout
+
+
 # (benchmark and arguments, the option its error names); {missing} a file that does not exist, {garbage} a
 # file of text that is neither JSON nor MCAP, {foreign} JSON runs of another benchmark, {nodir} a directory that
 # does not exist
