@@ -194,11 +194,13 @@ import os
 import threading
 from dataclasses import dataclass
 
+from onboard.app.overload import ESTIMATOR_SILENT_S, OVERLOAD_CLEAR_S, STALL_NAMED_S, Overload
 from onboard.core.checks import is_positive_number
 from onboard.core.errors import InputError
 from onboard.core.stream_rate import REASK_S
 
 __all__ = ["WatchdogWarning", "Watchdog", "INPUT_TIMEOUT_S", "NAV_GAP_S", "RESIDUAL_THRESHOLD"]
+__all__ += ["OVERLOAD_CLEAR_S", "STALL_NAMED_S", "ESTIMATOR_SILENT_S"]  # onboard.app.overload's, importable as before
 
 INPUT_TIMEOUT_S = 5.0
 NAV_GAP_S = 0.3
@@ -209,7 +211,6 @@ GNSS_FLAP_WINDOW_S = 10.0
 RESIDUAL_THRESHOLD = 3.0
 RESIDUAL_PERSIST_S = 5.0
 RESIDUAL_MIN_SAMPLES = 10
-OVERLOAD_CLEAR_S = 5.0
 #: frame_size clears this long after the last frame of another size: two cameras alternating on the key raised and
 #: cleared it with every frame (50 status messages and 50 log lines a second)
 FRAME_SIZE_CLEAR_S = 1.0
@@ -224,10 +225,6 @@ ESTIMATOR_RESTART_CLEAR_S = 30.0
 AUTOPILOT_REBOOT_CLEAR_S = 30.0
 #: name_clash clears this long after the other daemon's last status (ten of the default 1 s status interval)
 NAME_CLASH_CLEAR_S = 10.0
-#: a main-loop turn this much later than the previous one is a stall of the whole process, named as overload's cause
-#: (the loop turns at least every 50 ms while it runs; a second is twenty times that)
-STALL_NAMED_S = 1.0
-ESTIMATOR_SILENT_S = 1.0  # a worker that has answered nothing this long is named as overload's cause
 INPUTS_LIVE_S = 1.0  # frames and MAVLink messages within this long count as arriving, for no_attitude
 FRAMES_WITHOUT_POSE_S = 2.0
 #: the warnings that name why frames get no pose themselves: frames_without_pose would only repeat them
@@ -361,10 +358,7 @@ class Watchdog:
         self._high_since_s: float | None = None
         self._high_n = 0
         self._high_max = 0.0
-        self._load_counts: tuple[int, int, int] | None = None  # dropped, stale, dropped as they arrived bunched
-        self._load_since_s: float | None = None
-        self._load_seen = (0, 0)  # dropped, stale since the overload was raised
-        self._last_overload_s = -math.inf
+        self._overload = Overload()
         self._size_mismatch_s = -math.inf  # the last frame of another size than the camera's
         self._source_returns: collections.deque[tuple[float, int]] = collections.deque()  # (now_s, returns so far)
         self._source_return_s = -math.inf  # when the returns last grew
@@ -915,78 +909,22 @@ class Watchdog:
         stalled_s: float = 0.0,
         frames_dropped_bunched: int = 0,
     ) -> None:
-        """Update with the running counts of frames dropped and positions withheld as too old;
-        ``cpu_words``: the CPU the daemon got, in words, for the message (see ``overload``);
-        ``estimator_silent_s``: how long the estimator's worker process has answered nothing (the cause the message
-        names instead of the CPU when frames are not being dropped); ``quota_bound``: whether its CPU quota ran out
-        in the last interval (False: a quota that did not bind, so other work on the computer took the CPU; None:
-        unknown), which decides the advice; ``stalled_s``: how long the daemon's main loop last stood still, when that
-        was within :data:`OVERLOAD_CLEAR_S` (a stopped process, a paused or swapping computer; 0: none), named as the
-        cause instead of the CPU share when it is at least :data:`STALL_NAMED_S`; ``frames_dropped_bunched``: of
-        ``frames_dropped``, those dropped as the frames arrived bunched (:func:`onboard.app.frame_queue.arrived_bunched`:
-        a link holding and releasing them), named as the cause when every frame dropped since the last update was."""
-        counts = (int(frames_dropped), int(estimates_stale), int(frames_dropped_bunched))
-        last, self._load_counts = self._load_counts, counts
-        if last is None:
-            return
-        grew = counts[0] > last[0] or counts[1] > last[1]
-        if grew:
-            if "overload" not in self._active:
-                self._load_since_s, self._load_seen = now_s, (0, 0)
-            self._last_overload_s = now_s
-            self._load_seen = (
-                self._load_seen[0] + max(counts[0] - last[0], 0),
-                self._load_seen[1] + max(counts[1] - last[1], 0),
-            )
-            since = now_s - (self._load_since_s if self._load_since_s is not None else now_s)
-            seen = (
-                f"{self._load_seen[0]} frames dropped and {self._load_seen[1]} positions withheld as too old since the "
-                f"overload began {since:.1f} s ago"
-            )
-            if stalled_s >= STALL_NAMED_S:
-                # every thread stood still (SIGSTOP, a VM paused, the machine swapping): no CPU share explains it,
-                # and the CPU it got over the interval (a fraction of a core) would point at the wrong remedy
-                self._raise(
-                    "overload",
-                    f"{seen}: the daemon stood still for {stalled_s:.1f} s (its process stopped, or this computer "
-                    "paused or swapped), not a matter of its CPU share",
-                )
-            elif (
-                counts[1] == last[1]
-                and counts[0] > last[0]
-                and counts[2] - last[2] >= counts[0] - last[0]
-                and quota_bound is not True
-            ):
-                # the queue overflowed with frames that came together, captured a camera period apart: a faster
-                # pipeline would not have kept them all.  Where they were held is not known here: a CPU quota running
-                # out stops the receiving thread too (then the CPU's words above), and so can a starved computer
-                self._raise(
-                    "overload",
-                    f"{seen}: the frames arrived in bursts, faster than they were captured, and the queue keeps the "
-                    f"newest only (input.queue_length){cpu_words}: something held them and released them together, "
-                    "the camera's link or sender, or this computer's scheduler while other work takes the CPU; check "
-                    "the link, or raise input.queue_length",
-                )
-            elif counts[0] == last[0] and estimator_silent_s >= ESTIMATOR_SILENT_S:
-                # the frames keep up and the worker does not answer: a stopped or stalled process, not the CPU
-                self._raise(
-                    "overload",
-                    f"{seen}: the estimator's worker process has answered nothing for {estimator_silent_s:.1f} s (a "
-                    f"stopped or stalled process; it is killed and replaced after 5 s){cpu_words}",
-                )
-            else:
-                if quota_bound is False:
-                    advice = (
-                        "its CPU quota did not run out, so other work on this computer takes the CPU: move it off, "
-                        "give the daemon a higher priority, or lower the camera's frame rate"
-                    )
-                else:
-                    advice = (
-                        "raise its CPU limit (compose deploy.resources.limits.cpus, sized in deploy/README.md), lower "
-                        "the camera's frame rate, or move other work off this computer"
-                    )
-                self._raise("overload", f"{seen}: the daemon does not get the CPU it needs{cpu_words}; {advice}")
-        elif now_s - self._last_overload_s >= OVERLOAD_CLEAR_S:
+        """Update ``overload`` with the running counts of frames dropped and positions withheld as too old, and what
+        its message names as the cause: each argument as :meth:`onboard.app.overload.Overload.update` takes it."""
+        message = self._overload.update(
+            now_s,
+            active="overload" in self._active,
+            frames_dropped=frames_dropped,
+            estimates_stale=estimates_stale,
+            cpu_words=cpu_words,
+            estimator_silent_s=estimator_silent_s,
+            quota_bound=quota_bound,
+            stalled_s=stalled_s,
+            frames_dropped_bunched=frames_dropped_bunched,
+        )
+        if message is not None:
+            self._raise("overload", message)
+        elif not self._overload.held(now_s):
             self._clear("overload")
 
     # ------------------------------------------------------------------ state
