@@ -47,6 +47,8 @@ def vehicle_arg(text: str) -> str:
     return name
 
 
+# the noise a vehicle can have (degrees, metres): zero allowed for the nuisances a zero switches off, not for the
+# white noise; beyond the upper bounds no camera is placed at all, and the solve would overflow
 attitude_bias_deg_arg = number_in(0.0, 90.0)
 camera_white_m_arg = number_in(0.0, 1000.0, lo_open=True)
 camera_offset_m_arg = number_in(0.0, 1000.0)
