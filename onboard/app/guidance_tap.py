@@ -179,8 +179,14 @@ class GuidanceTap:
                     # estimate_epoch: a reset holds nothing from before): no manoeuvre for it
                     if self._target is _LOST:
                         # a target still measured, with a pose, whose line of sight the daemon withholds (a zoom, a
-                        # camera or gimbal mismatch: the status's geometry) is not lost: say which
-                        self._end_advice("geometry_withheld" if track.geometry_withheld else "target_lost")
+                        # camera or gimbal mismatch: the status's geometry) is not lost, nor one measured in a frame
+                        # that got no pose (the telemetry stopped: a MAVLink link cut): say which
+                        if track.geometry_withheld:
+                            self._end_advice("geometry_withheld")
+                        elif track.measurement_valid and not track.pose_valid:
+                            self._end_advice("no_pose")
+                        else:
+                            self._end_advice("target_lost")
                     elif isinstance(advice[2], tuple) and advice[2][0] == self._target[0]:
                         self._end_advice("estimate_reset")
                     else:
