@@ -293,7 +293,19 @@ class GuidanceTap:
         )
         if decision.state != self._last_state:
             level = logging.WARNING if decision.state == "stopped" else logging.INFO
-            log.log(level, "guidance in the loop: %s%s", decision.state, f" ({decision.why})" if decision.why else "")
+            # a stop is latched: the operator reading it must learn what ends it, not only why it came
+            latched = (
+                "; no setpoints until the autopilot leaves the accepting mode and re-enters it (the pilot's hand-over)"
+                if decision.state == "stopped"
+                else ""
+            )
+            log.log(
+                level,
+                "guidance in the loop: %s%s%s",
+                decision.state,
+                f" ({decision.why})" if decision.why else "",
+                latched,
+            )
             self._last_state = decision.state
         return self._send(decision, link)
 

@@ -1094,3 +1094,27 @@ def test_an_advice_ended_by_a_frame_without_a_pose_says_so_not_target_lost():
     )
     tap.on_frame(None, FrameResult(0, True, None, unposed, None))
     assert tap._advice is None and tap.status()["setpoints"]["advice_ends"] == {"no_pose": 1}
+
+
+def test_a_stop_is_logged_once_with_how_the_setpoints_resume(caplog):
+    """In the loop against the simulator, a stop (the altitude band left, a MAVLink link cut, a restart found in
+    GUIDED) was logged 'stopped (<reason>)' and nothing more: the operator read why it stopped, not that it stays
+    stopped until the autopilot leaves the accepting mode and re-enters it (deploy/README.md)."""
+    import logging
+
+    from onboard.app.observers import FrameResult
+
+    now = [100.0]
+    tap, link, sent = _in_loop_tap(now)
+    tap.on_frame(None, FrameResult(0, True, _pose(), None, None))
+    tap._advice = (now[0] + 3.0, np.array([1.0, 0.0, 0.0]), None)
+    link.autopilot_mode = GUIDED
+    assert tap.setpoint_step(now[0], link) and sent
+    with caplog.at_level(logging.WARNING, logger="onboard.app.guidance_tap"):
+        for _ in range(8):  # no more frames: the pose ages past pose_timeout_s, the gate stops and brakes
+            now[0] += 0.25
+            tap.setpoint_step(now[0], link)
+    stops = [r.getMessage() for r in caplog.records if "stopped" in r.getMessage()]
+    assert tap.status()["setpoints"]["state"] == "stopped"
+    assert len(stops) == 1 and "pose_lost" in stops[0], stops
+    assert "until the autopilot leaves the accepting mode and re-enters it" in stops[0], stops[0]
