@@ -81,7 +81,7 @@ Noise: ``--attitude-bias-deg`` / ``--camera-white-m`` (> 0) / ``--camera-offset-
 ``--vehicle-noise`` for one vehicle's keys where they differ (e.g. ``uav2:attitude_bias_deg=0.5``).  A vehicle's
 attitude-bias prior (the share of each ray's published sigma the solve takes as a constant common to its rays, not
 white noise) is, from its newest ray on: ``--vehicle-noise NAME:attitude_bias_deg=..`` where that names it (the
-operator's word wins; a track stating a value more than :data:`~onboard.app.fuse_bias.BIAS_APART_FACTOR` (1.5) from it is warned of once,
+operator's word wins; a track stating a value more than :data:`~onboard.app.fuse_noise.BIAS_APART_FACTOR` (1.5) from it is warned of once,
 naming both), else what its tracks state (``los_sigma_bias_deg``: its daemon's
 ``estimator.attitude_bias_sigma_deg``), else ``--attitude-bias-deg`` (a daemon before the key).  Said at INFO once per
 vehicle and again if it changes; the status gives each vehicle's under ``attitude_bias_prior``: ``{deg, source,
