@@ -266,6 +266,7 @@ def cmd_report(args) -> int:
                 print(f"note: {note}")
         truth = rec.truth
         truth_cut = None
+        truth_objects = rec.truth_objects
         if args.truth:
             try:
                 truth_rec = load_recording(args.truth)
@@ -273,6 +274,7 @@ def cmd_report(args) -> int:
                 # the reader's words fit the flight's file, the daemon's recording; --truth is the simulator's
                 raise InputError(f"--truth {str(exc).replace(DAEMON_RECORDER, SIM_RECORDER)}") from None
             truth, truth_cut = truth_rec.truth, truth_rec.truncated
+            truth_objects = truth_rec.truth_objects
             if not truth:
                 raise InputError(
                     f"--truth {args.truth}: no /groundsim/truth messages (groundsim run --record writes them)"
@@ -301,7 +303,19 @@ def cmd_report(args) -> int:
             print(coverage.note(args.truth))
             extra["truth_covers"] = asdict(coverage)
         # a full disk while a plot is saved: one line naming --out, as the folder's own checks are
-        paths = writing(out, write_flight_report, out, res.tracks, poses, frames, truth or None, _title(rec), extra)
+        paths = writing(
+            out,
+            write_flight_report,
+            out,
+            res.tracks,
+            poses,
+            frames,
+            truth or None,
+            _title(rec),
+            extra,
+            res.objects,
+            truth_objects,
+        )
     except KeyboardInterrupt:
         written = (set(out.glob("*")) - before) if out.is_dir() else set()
         return print_interrupted(f"partial report in {out} ({len(written)} files)" if written else "nothing written")

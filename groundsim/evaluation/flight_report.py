@@ -6,7 +6,9 @@ The tracks (replayed, or as recorded) give the online reconstruction; the record
 the truth comes from a simulator recording (``groundsim run --record``, channel ``/groundsim/truth``) when one
 is given, matched frame by frame on (seq, time_boot_us) and put in the tracks' local NED frame through its
 WGS84 coordinates.  Without truth: the trajectory plot (estimate and camera path only) and the frame.
-Writes ``trajectory.png``, ``errors.png`` (truth only), ``frame.png``, ``summary.json``.
+Writes ``trajectory.png``, ``errors.png`` (truth only), ``frame.png``, ``objects.png`` (the objects image chain's
+objects against the simulator's labels of every object, ``/groundsim/truth/objects``: who was tracked when, as
+``groundsim eval`` draws it), ``summary.json``.
 """
 
 from __future__ import annotations
@@ -85,7 +87,7 @@ def flight_run(tracks: list, poses: dict, truth: list | None, name: str) -> Flig
 
 
 #: every file :func:`write_flight_report` may write in its folder
-REPORT_FILES = ("trajectory.png", "errors.png", "frame.png", "summary.json")
+REPORT_FILES = ("trajectory.png", "errors.png", "frame.png", "objects.png", "summary.json")
 #: summary.json's ``schema``: what marks a folder as a flight report's
 REPORT_SCHEMA = "irtrack.flight_report/1"
 #: the keys of a summary.json written before it carried ``schema``
@@ -113,12 +115,22 @@ def holds_flight_report(out_dir) -> bool:
 
 
 def write_flight_report(
-    out_dir, tracks: list, poses: dict, frames: dict, truth: list | None, name: str, summary_extra: dict | None = None
+    out_dir,
+    tracks: list,
+    poses: dict,
+    frames: dict,
+    truth: list | None,
+    name: str,
+    summary_extra: dict | None = None,
+    objects: list | None = None,
+    truth_objects: list | None = None,
 ) -> list[Path]:
     """Write the plots (module docstring); ``frames`` {(seq, t_us): pixels (H, W)} for the frame plot;
     ``summary_extra``: what the caller knows of its inputs, written into ``summary.json`` beside what the report
-    drew.  Returns the paths written."""
-    from groundsim.evaluation.report_plots import plot_errors, plot_frame, plot_trajectory
+    drew.  ``objects`` (the image chain's ``irtrack.objects/1`` messages) and ``truth_objects`` (the simulator's
+    ``irtrack.truth_objects/1``), both given: ``objects.png``, who was tracked when (as ``groundsim eval`` draws it).
+    Returns the paths written."""
+    from groundsim.evaluation.report_plots import plot_errors, plot_frame, plot_objects, plot_trajectory
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -184,6 +196,30 @@ def write_flight_report(
             )
         )
         summary["frame_seq"] = tr["seq"]
+    if objects and not truth_objects and truth:  # no scene: the target alone, from the truth rows (as eval's files)
+        truth_objects = [
+            {
+                "seq": r["seq"],
+                "time_boot_us": r["time_boot_us"],
+                "objects": [
+                    {
+                        "id": 0,
+                        "u_px": r.get("target_u_px"),
+                        "v_px": r.get("target_v_px"),
+                        "visibility": "visible" if r.get("target_visible") else "out_of_frame",
+                    }
+                ],
+            }
+            for r in truth
+        ]
+    if objects and truth_objects:
+        from groundsim.evaluation.mot import recorded_mot
+
+        gt, trk, t_s = recorded_mot(truth_objects, objects)
+        if gt:
+            written.append(
+                plot_objects(out / "objects.png", gt, trk, t_s, f"{name}: objects tracked (paired within 3 px)")
+            )
     (out / "summary.json").write_text(json.dumps(summary | (summary_extra or {}), indent=1) + "\n")
     written.append(out / "summary.json")
     # an earlier report in the same folder (with truth, or with a frame) must not leave its plot beside this one

@@ -47,6 +47,7 @@ __all__ = [
     "unscorable_objects",
     "nearest_within",
     "object_timeline",
+    "recorded_mot",
     "format_perception",
     "format_mot_scores",
 ]
@@ -420,3 +421,33 @@ def object_timeline(gt_text: str, tracker_text: str, radius_px: float = MATCH_PX
             if tid not in taken:
                 false.setdefault(tid, []).append(frame)
     return {"objects": dict(sorted(objects.items())), "false": dict(sorted(false.items()))}
+
+
+def recorded_mot(truth_objects: list[dict], objects: list[dict]) -> tuple[str, str, list[float]]:
+    """The MOT files of a recorded flight, for :func:`object_timeline`: ``truth_objects`` the simulator's
+    ``irtrack.truth_objects/1`` messages (one a rendered frame), ``objects`` the daemon's ``irtrack.objects/1`` (one
+    a frame its image chain took, recorded or replayed).  Frame k (from 1) is the k-th truth message in time; a
+    daemon's message counts on the frame of the same ``time_boot_us`` (its confirmed objects, as :func:`tracker_rows`
+    writes them), none on a frame it did not take.  Returns ``(gt text, tracker text, each frame's time in s from
+    the first)``."""
+    frames = sorted({int(m["time_boot_us"]): m for m in truth_objects}.items())
+    number = {t_us: k + 1 for k, (t_us, _) in enumerate(frames)}
+    gt: list[str] = []
+    for t_us, m in frames:
+        for o in m.get("objects") or []:
+            u, v = o.get("u_px"), o.get("v_px")
+            if u is None or v is None or not (math.isfinite(u) and math.isfinite(v)):
+                continue  # behind the camera: nowhere in the image to put it
+            visible = o.get("visibility") == "visible"
+            gt.append(gt_line(number[t_us], int(o["id"]) + 1, float(u), float(v), 1 if visible else None, 1.0))
+    trk: list[str] = []
+    for m in objects:
+        k = number.get(int(m["time_boot_us"]))
+        if k is None:
+            continue
+        for o in m.get("objects") or []:
+            if o.get("state") != "confirmed":
+                continue
+            trk.append(f"{k},{int(o['id'])},{square_box(float(o['u_px']), float(o['v_px']))},1,-1,-1,-1\n")
+    t0 = frames[0][0] if frames else 0
+    return "".join(gt), "".join(trk), [(t_us - t0) / 1e6 for t_us, _ in frames]

@@ -56,6 +56,8 @@ class Recording:
     parts: list = field(default_factory=list)
     # the recorder's irtrack.stopped metadata (reason, stopped_utc) when it stopped before the flight ended, else None
     stopped: dict | None = None
+    # the simulator's irtrack.truth_objects/1 dicts in file order (every object's label a frame; groundsim recordings)
+    truth_objects: list = field(default_factory=list)
 
     @property
     def files(self) -> list[str]:

@@ -136,7 +136,13 @@ from onboard.core.status import STATUS_SCHEMA  # noqa: E402
 from onboard.io.foxglove_messages import OBJECTS_SCHEMA, irframe_from_rawimage  # noqa: E402
 from onboard.io.mcap_read import FrameRef, read_recording  # noqa: E402
 from onboard.io.pose_json import pose_from_json  # noqa: E402
-from onboard.io.record import FRAME_INPUT_TOPIC, IMAGING_POSE_TOPIC, STOPPED_METADATA, TRUTH_TOPIC  # noqa: E402
+from onboard.io.record import (  # noqa: E402
+    FRAME_INPUT_TOPIC,
+    IMAGING_POSE_TOPIC,
+    STOPPED_METADATA,
+    TRUTH_OBJECTS_TOPIC,
+    TRUTH_TOPIC,
+)
 
 __all__ = [
     "Recording",
@@ -174,7 +180,7 @@ def load_recording(path: str) -> Recording:
 
     meta: dict[str, str] = {}
     frames: dict = {}
-    inputs, tracks, truth, objects = [], [], [], []
+    inputs, tracks, truth, objects, truth_objects = [], [], [], [], []
     imaging_poses: dict = {}
     statuses: list = []
     input_log_ns: list = []
@@ -215,6 +221,11 @@ def load_recording(path: str) -> Recording:
                 tracks.append(track_row(m.data))
             elif m.topic == TRUTH_TOPIC:
                 truth.append(truth_row(m.data))
+            elif m.topic == TRUTH_OBJECTS_TOPIC:
+                obj = json_object(m.data, ("seq", "time_boot_us"))
+                if not isinstance(obj.get("objects"), list):
+                    raise ValueError(f"field 'objects' is {obj.get('objects')!r}, not a list")
+                truth_objects.append(obj)
             elif m.schema == OBJECTS_SCHEMA:
                 objects.append(json_object(m.data, ("time_boot_us", "frame_index")))
             elif m.topic == IMAGING_POSE_TOPIC:
@@ -242,6 +253,7 @@ def load_recording(path: str) -> Recording:
         statuses,
         input_log_ns,
         stopped=stopped,
+        truth_objects=truth_objects,
     )
 
 
@@ -300,6 +312,7 @@ def load_flight(paths: str | Sequence[str]) -> Recording:
         [r.path for r in recs],
         # (a stop ends the recording: only its last file can say one)
         stopped=next((r.stopped for r in reversed(recs) if r.stopped is not None), None),
+        truth_objects=[t for r in recs for t in r.truth_objects],
     )
 
 

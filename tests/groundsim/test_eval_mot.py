@@ -237,3 +237,33 @@ def test_plot_objects_draws_a_png_from_the_mot_files(tmp_path):
     path = plot_objects(tmp_path / "o.png", gt, trk, np.arange(30) / 30.0, "t")
     data = path.read_bytes()
     assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 10_000
+
+
+def test_recorded_mot_numbers_the_simulators_frames_and_counts_the_daemons_confirmed_objects_on_theirs():
+    from groundsim.evaluation.mot import object_timeline, recorded_mot
+
+    def label(oid, u, v, visibility="visible"):
+        return {"id": oid, "u_px": u, "v_px": v, "visibility": visibility}
+
+    truth = [  # (out of order in the file: numbered in time)
+        {"seq": 1, "time_boot_us": 1_033_333, "objects": [label(0, 11.0, 20.0), label(1, None, None, "out_of_frame")]},
+        {"seq": 0, "time_boot_us": 1_000_000, "objects": [label(0, 10.0, 20.0), label(1, 50.0, 60.0, "occluded")]},
+    ]
+    objects = [
+        {"time_boot_us": 1_033_333, "frame_index": 1, "objects": [
+            {"id": 7, "state": "confirmed", "u_px": 11.2, "v_px": 20.0},
+            {"id": 8, "state": "coasting", "u_px": 50.0, "v_px": 60.0},  # a prediction: not a tracked object
+        ]},
+        {"time_boot_us": 9_999_999, "frame_index": 2, "objects": [  # no truth frame of this time: left out
+            {"id": 7, "state": "confirmed", "u_px": 11.0, "v_px": 20.0},
+        ]},
+    ]  # fmt: skip
+    gt, trk, t_s = recorded_mot(truth, objects)
+    assert t_s == [0.0, 0.033333]
+    assert [line.split(",")[:2] + line.split(",")[6:8] for line in gt.splitlines()] == [
+        ["1", "1", "1", "1"],  # frame 1, the target (id + 1), visible, class 1
+        ["1", "2", "0", str(HIDDEN_CLASS)],  # the occluded one: consider 0
+        ["2", "1", "1", "1"],  # (the object behind the camera has no row)
+    ]
+    assert [line.split(",")[:2] for line in trk.splitlines()] == [["2", "7"]]
+    assert object_timeline(gt, trk)["objects"][1] == [(1, True, None), (2, True, 7)]

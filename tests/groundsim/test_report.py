@@ -38,7 +38,7 @@ def test_report_plots_a_recorded_flight_against_the_simulators_truth_then_none_o
     p = _report(recorded.daemon_mcap, "--truth", recorded.sim_mcap, "--out", out)
     assert p.returncode == 0, p.stderr[-3000:]
     assert "report:" in p.stdout
-    for name in ("trajectory.png", "errors.png", "frame.png"):
+    for name in ("trajectory.png", "errors.png", "frame.png", "objects.png"):  # objects: P1's target alone
         assert (out / name).stat().st_size > 10_000, name
     summary = json.loads((out / "summary.json").read_text())
     assert summary["truth"] is True and summary["frames"] == len(recorded.tracks)
@@ -48,6 +48,7 @@ def test_report_plots_a_recorded_flight_against_the_simulators_truth_then_none_o
     p = _report(recorded.daemon_mcap, "--out", out)
     assert p.returncode == 0, p.stderr[-3000:]
     assert not (out / "errors.png").exists() and (out / "trajectory.png").exists()
+    assert not (out / "objects.png").exists()  # (no truth of the objects either)
 
 
 @pytest.mark.subprocess
