@@ -238,7 +238,8 @@ def _add_run(p: argparse.ArgumentParser) -> None:
         default=True,
         help="the vehicle heartbeats as ArduPilot, in LOITER until it has heard the companion (the pilot's hand-over),"
         " then in GUIDED, and its observer flies its scripted motion until the first velocity setpoint (SET_POSITION_TARGET_LOCAL_NED) arrives, then follows the setpoints (the daemon"
-        " sends none unless guidance.enabled); --no-guided: a generic autopilot that ignores them (default: guided)",
+        " sends none unless guidance.enabled); a ground station may switch it between LOITER (it holds) and GUIDED"
+        " (MAV_CMD_DO_SET_MODE or SET_MODE); --no-guided: a generic autopilot that ignores them (default: guided)",
     )
     p.add_argument(
         "--gimbal-frame",

@@ -600,6 +600,9 @@ def run_fleet_loop(
                     for v_ned_mps in getattr(vehicle, "take_setpoints", list)():  # guided: the observer follows them
                         t_s = c.tick_time_s(i)
                         c.flight.command_observer(t_s, v_ned_mps, t_s + GUIDED_SETPOINT_TIMEOUT_S)
+                    if getattr(vehicle, "take_hold", bool)():  # a ground station switched to LOITER: hold there
+                        t_s = c.tick_time_s(i)
+                        c.flight.command_observer(t_s, (0.0, 0.0, 0.0), t_s)
                 except sink_errors as exc:
                     mavlink_errors(f"tick {i}: mavlink{' ' + leg.name if fleet else ''}", exc)
                 acc["mavlink"] += clock.now_s() - t0

@@ -101,7 +101,11 @@ Services (read on every poll):
   restores the default, > 0 sets) -> COMMAND_ACK ACCEPTED for a message id we emit, DENIED for
   any other id or a bad interval; ``MAV_CMD_REQUEST_MESSAGE`` (param1 message id) -> ACCEPTED
   and one message now when we can produce it, DENIED otherwise; REQUEST_AUTOPILOT_CAPABILITIES and
-  GET_HOME_POSITION as above; any other command -> UNSUPPORTED.
+  GET_HOME_POSITION as above; ``MAV_CMD_DO_SET_MODE`` (and the SET_MODE message, acked as ArduPilot acks it, with
+  its message id 11 as the command) of a guided vehicle: LOITER or GUIDED as a custom mode (param1 with
+  MAV_MODE_FLAG_CUSTOM_MODE_ENABLED) ACCEPTED, any other DENIED, UNSUPPORTED without ``guided``; from then on the
+  vehicle reports that mode instead of the automatic hand-over, takes setpoints in GUIDED only, and holds where it
+  is when GUIDED is left (:meth:`MavlinkVehicle.take_hold`); any other command -> UNSUPPORTED.
 
 Gimbal: ``update_state(..., q_gimbal=q_ned_from_gimbal)`` takes the gimbal's attitude in the local level where
 the vehicle is, as the body's (``SimCore.vehicle_state``; :mod:`onboard.core.frames`, "Local level") (gimbal axes as the mount's in :mod:`onboard.core.frames`: x optical axis, y right, z down), i.e.
@@ -321,6 +325,10 @@ class MavlinkVehicle:
         # the companion's heartbeat and sent it one more LOITER heartbeat, then GUIDED: the pilot's hand-over, which
         # the daemon's gate waits to see (a daemon that first sees GUIDED was not handed the vehicle)
         self.guided = bool(guided)
+        # the mode a ground station set (MAV_CMD_DO_SET_MODE or SET_MODE: LOITER or GUIDED), which then rules over the
+        # automatic hand-over: the pilot takes the vehicle back, or hands it over, as on a real autopilot
+        self._pilot_mode: int | None = None
+        self._hold = False  # GUIDED left for LOITER since the last take_hold: the flight holds where it is
         self._companion_heard = False
         self._loiter_after_companion = 0
         self._setpoints: list[tuple[float, float, float]] = []
@@ -545,6 +553,8 @@ class MavlinkVehicle:
         is heard and has been sent one more LOITER heartbeat, then GUIDED."""
         if not self.guided:
             return None
+        if self._pilot_mode is not None:
+            return self._pilot_mode
         if self._companion_heard and self._loiter_after_companion < 1:
             self._loiter_after_companion += 1  # this LOITER one reaches the companion listening
             return ARDUCOPTER_LOITER_MODE
@@ -642,6 +652,16 @@ class MavlinkVehicle:
                     sent += self._on_mission(msg, mtype)
                 elif mtype == "SET_POSITION_TARGET_LOCAL_NED" and self.in_guided and self._for_us(msg):
                     self._setpoints.append(SetPositionTargetLocalNed.from_message(msg).v_ned_mps)
+                elif mtype == "SET_MODE" and msg.target_system == self.sysid:
+                    # (deprecated, still what many ground stations send); ArduPilot acks it with the message's id
+                    result = self._set_mode(msg.base_mode, msg.custom_mode)
+                    self._conn.mav.send(
+                        command_ack_message(
+                            mavlink2.MAVLINK_MSG_ID_SET_MODE, result, msg.get_srcSystem(), msg.get_srcComponent()
+                        )
+                    )
+                    self.counters[_ACK_COUNTER.get(result, "ack_other")] += 1
+                    sent += 1
                 elif (
                     mtype == "HEARTBEAT"
                     and msg.type == mavlink2.MAV_TYPE_ONBOARD_CONTROLLER
@@ -658,8 +678,36 @@ class MavlinkVehicle:
 
     @property
     def in_guided(self) -> bool:
-        """Reporting GUIDED (``guided``, handed over to the companion): the setpoints are taken."""
+        """Reporting GUIDED (``guided``, handed over to the companion, or put there by a ground station): the
+        setpoints are taken."""
+        if self._pilot_mode is not None:
+            return self.guided and self._pilot_mode == ARDUCOPTER_GUIDED_MODE
         return self.guided and self._companion_heard and self._loiter_after_companion >= 1
+
+    def take_hold(self) -> bool:
+        """True once after a ground station switched GUIDED to LOITER: the flight is to hold where it is (LOITER)
+        instead of flying the last setpoint on."""
+        hold, self._hold = self._hold, False
+        return hold
+
+    def _set_mode(self, base_mode: float, custom_mode: float) -> int:
+        """A ground station's mode change (``guided`` only): ArduCopter's LOITER or GUIDED as a custom mode;
+        MAV_RESULT of it."""
+        if not self.guided:
+            return mavlink2.MAV_RESULT_UNSUPPORTED
+        if not int(base_mode) & mavlink2.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED or custom_mode not in (
+            ARDUCOPTER_LOITER_MODE,
+            ARDUCOPTER_GUIDED_MODE,
+        ):
+            return mavlink2.MAV_RESULT_DENIED
+        was_guided, mode = self.in_guided, int(custom_mode)
+        self._pilot_mode = mode
+        if was_guided and mode != ARDUCOPTER_GUIDED_MODE:
+            self._hold, self._setpoints = True, []
+        name = "GUIDED" if mode == ARDUCOPTER_GUIDED_MODE else "LOITER"
+        log.info("guided: a ground station set the mode %s%s", name, ": the companion's setpoints are flown"
+                 if mode == ARDUCOPTER_GUIDED_MODE else ": the vehicle holds, setpoints are ignored")  # fmt: skip
+        return mavlink2.MAV_RESULT_ACCEPTED
 
     def take_setpoints(self) -> list[tuple[float, float, float]]:
         """The velocity setpoints (NED m/s) received since the last call, oldest first (``guided`` only)."""
@@ -747,6 +795,8 @@ class MavlinkVehicle:
             result = self._request_message(float(MSG_AUTOPILOT_VERSION))
         elif cmd == mavlink2.MAV_CMD_GET_HOME_POSITION:
             result = self._request_message(float(MSG_HOME_POSITION))
+        elif cmd == mavlink2.MAV_CMD_DO_SET_MODE:
+            result = self._set_mode(msg.param1, msg.param2)
         else:
             result = mavlink2.MAV_RESULT_UNSUPPORTED
         self._conn.mav.send(command_ack_message(cmd, result, msg.get_srcSystem(), msg.get_srcComponent()))

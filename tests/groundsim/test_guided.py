@@ -215,3 +215,91 @@ def test_guided_vehicle_reports_guided_and_takes_the_companions_velocity_setpoin
     finally:
         vehicle.close()
         rx.close()
+
+
+def test_a_ground_station_takes_the_guided_vehicle_back_to_loiter_and_hands_it_over_again():
+    """The simulated autopilot refused every mode change a ground station asked (DO_SET_MODE: UNSUPPORTED; SET_MODE
+    dropped), so the gate's 'the pilot took the vehicle back' could not be flown against it.  Now LOITER and GUIDED
+    are taken from a ground station, by command or by SET_MODE (acked as ArduPilot acks it): in LOITER the heartbeat
+    says so, the setpoints are ignored and the flight is told once to hold; back in GUIDED they are flown again."""
+    import time
+
+    from groundsim.io.mavlink_vehicle import (
+        ARDUCOPTER_GUIDED_MODE,
+        ARDUCOPTER_LOITER_MODE,
+        MavlinkVehicle,
+        open_mavlink2,
+    )
+    from groundsim.io.ports import free_udp_port
+    from onboard.io.mavlink_wire import SetPositionTargetLocalNed, mavlink2
+
+    port = free_udp_port()
+    rx = open_mavlink2(f"udpin:127.0.0.1:{port}", 1, 191)  # the companion's side, and the ground station's here
+    vehicle = MavlinkVehicle(f"udpout:127.0.0.1:{port}", guided=True)
+    gcs = mavlink2.MAVLink(None, srcSystem=255, srcComponent=190)
+    now = {"us": 0}
+    deadline = time.monotonic() + 15.0
+
+    def until(what, pred):
+        got = []
+        while time.monotonic() < deadline:
+            now["us"] += 100_000
+            vehicle.poll(now["us"])
+            while (m := rx.recv_match(blocking=False)) is not None:
+                got.append(m)
+            if pred(got):
+                return got
+            time.sleep(0.002)
+        raise AssertionError(f"timed out waiting for {what}: {[m.get_type() for m in got][-10:]}")
+
+    def mode_of(got):
+        hbs = [m for m in got if m.get_type() == "HEARTBEAT"]
+        return hbs[-1].custom_mode if hbs else None
+
+    def acks(got):
+        return [(m.command, m.result) for m in got if m.get_type() == "COMMAND_ACK"]
+
+    custom = mavlink2.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+    try:
+        until("a heartbeat", lambda got: mode_of(got) is not None)  # (the udpin side learns where to answer)
+        rx.mav.heartbeat_send(mavlink2.MAV_TYPE_ONBOARD_CONTROLLER, mavlink2.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+        until("GUIDED", lambda got: mode_of(got) == ARDUCOPTER_GUIDED_MODE)
+        assert vehicle.in_guided and not vehicle.take_hold()
+        # the pilot takes the vehicle back: LOITER by command
+        rx.write(gcs.command_long_encode(1, 1, mavlink2.MAV_CMD_DO_SET_MODE, 0, custom, ARDUCOPTER_LOITER_MODE,
+                                         0, 0, 0, 0, 0).pack(gcs))  # fmt: skip
+        got = until("LOITER", lambda got: mode_of(got) == ARDUCOPTER_LOITER_MODE)
+        assert (mavlink2.MAV_CMD_DO_SET_MODE, mavlink2.MAV_RESULT_ACCEPTED) in acks(got)
+        assert vehicle.take_hold() and not vehicle.take_hold()  # once
+        rx.mav.send(SetPositionTargetLocalNed(1_000_000, 1, 1, (5.0, 0.0, 0.0)).to_message())
+        until("the setpoint read", lambda got: vehicle.counters["rx_SET_POSITION_TARGET_LOCAL_NED"] >= 1)
+        assert vehicle.take_setpoints() == []  # not flown in LOITER
+        # a mode the simulator does not fly: refused, the mode kept
+        rx.write(gcs.command_long_encode(1, 1, mavlink2.MAV_CMD_DO_SET_MODE, 0, custom, 3, 0, 0, 0, 0, 0).pack(gcs))
+        got = until("the refusal", lambda got: acks(got))
+        assert acks(got) == [(mavlink2.MAV_CMD_DO_SET_MODE, mavlink2.MAV_RESULT_DENIED)]
+        # handed over again, by SET_MODE (acked with its message id, as ArduPilot does)
+        rx.write(gcs.set_mode_encode(1, custom, ARDUCOPTER_GUIDED_MODE).pack(gcs))
+        got = until("GUIDED again", lambda got: mode_of(got) == ARDUCOPTER_GUIDED_MODE)
+        assert (mavlink2.MAVLINK_MSG_ID_SET_MODE, mavlink2.MAV_RESULT_ACCEPTED) in acks(got)
+        rx.mav.send(SetPositionTargetLocalNed(1_000_000, 1, 1, (2.0, -3.0, 0.5)).to_message())
+        flown: list = []
+        until("the setpoint flown", lambda got: bool(flown.extend(vehicle.take_setpoints()) or flown))
+        assert flown == [(2.0, -3.0, 0.5)]
+    finally:
+        vehicle.close()
+        rx.close()
+
+
+def test_a_vehicle_that_is_not_guided_refuses_a_mode_change():
+    from groundsim.io.mavlink_vehicle import ARDUCOPTER_LOITER_MODE, MavlinkVehicle
+    from onboard.io.mavlink_wire import mavlink2
+
+    vehicle = MavlinkVehicle("udpout:127.0.0.1:9", guided=False)
+    try:
+        assert vehicle._set_mode(mavlink2.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, ARDUCOPTER_LOITER_MODE) == (
+            mavlink2.MAV_RESULT_UNSUPPORTED
+        )
+        assert not vehicle.take_hold()
+    finally:
+        vehicle.close()
