@@ -266,7 +266,7 @@ def cmd_report(args) -> int:
                 print(f"note: {note}")
         truth = rec.truth
         truth_cut = None
-        truth_objects = rec.truth_objects
+        truth_objects = getattr(rec, "truth_objects", [])  # (a stand-in for a Recording may not have it)
         if args.truth:
             try:
                 truth_rec = load_recording(args.truth)
@@ -274,7 +274,7 @@ def cmd_report(args) -> int:
                 # the reader's words fit the flight's file, the daemon's recording; --truth is the simulator's
                 raise InputError(f"--truth {str(exc).replace(DAEMON_RECORDER, SIM_RECORDER)}") from None
             truth, truth_cut = truth_rec.truth, truth_rec.truncated
-            truth_objects = truth_rec.truth_objects
+            truth_objects = getattr(truth_rec, "truth_objects", [])
             if not truth:
                 raise InputError(
                     f"--truth {args.truth}: no /groundsim/truth messages (groundsim run --record writes them)"
@@ -313,7 +313,7 @@ def cmd_report(args) -> int:
             truth or None,
             _title(rec),
             extra,
-            res.objects,
+            getattr(res, "objects", None),
             truth_objects,
         )
     except KeyboardInterrupt:
