@@ -4,7 +4,6 @@ together): kept apart so that the service stays the wiring."""
 from __future__ import annotations
 
 import json
-import math
 from typing import TYPE_CHECKING, Any
 
 from onboard.core.status import STATUS_SCHEMA
@@ -63,7 +62,9 @@ def twin_words(payload: bytes) -> str:
         return f"{len(payload)} bytes that are not an irtrack.status/1"
     words = []
     up = obj.get("uptime_s")
-    if isinstance(up, (int, float)) and not isinstance(up, bool) and math.isfinite(up):
+    # (abs() and not math.isfinite: an integer too large for a float, 1e400 written out, raised OverflowError there and
+    # in the format; no daemon is up 1e15 s)
+    if isinstance(up, (int, float)) and not isinstance(up, bool) and abs(up) < 1e15:
         words.append(f"up {up:.0f} s")
     frames = obj.get("frames")
     n = frames.get("in") if isinstance(frames, dict) else None

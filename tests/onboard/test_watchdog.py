@@ -629,6 +629,12 @@ def test_name_clash_is_warned_once_while_another_daemons_status_arrives_and_clea
         (b"\xff\xfe", "not JSON"),
         (b"[" * 100_000, "not JSON"),
         (b" " * (300 * 1024), "a payload of 307200 bytes"),
+        # an integer too large for a float: math.isfinite and the '.0f' format raised OverflowError
+        pytest.param(
+            b'{"schema": "irtrack.status/1", "uptime_s": 1' + b"0" * 400 + b', "frames": {"in": 3}}',
+            "its status says 3 frames in",
+            id="uptime_an_integer_too_large_for_a_float",
+        ),
     ],
 )
 def test_another_daemons_status_is_put_in_words_whatever_it_holds(payload, words):
