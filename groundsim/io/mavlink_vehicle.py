@@ -695,10 +695,10 @@ class MavlinkVehicle:
         MAV_RESULT of it."""
         if not self.guided:
             return mavlink2.MAV_RESULT_UNSUPPORTED
-        if not int(base_mode) & mavlink2.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED or custom_mode not in (
-            ARDUCOPTER_LOITER_MODE,
-            ARDUCOPTER_GUIDED_MODE,
-        ):
+        # (a COMMAND_LONG's param1 is a float: NaN or infinite is denied, as the other commands' params, not raised)
+        if not math.isfinite(base_mode) or not int(base_mode) & mavlink2.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
+            return mavlink2.MAV_RESULT_DENIED
+        if custom_mode not in (ARDUCOPTER_LOITER_MODE, ARDUCOPTER_GUIDED_MODE):
             return mavlink2.MAV_RESULT_DENIED
         was_guided, mode = self.in_guided, int(custom_mode)
         self._pilot_mode = mode

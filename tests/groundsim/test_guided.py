@@ -303,3 +303,19 @@ def test_a_vehicle_that_is_not_guided_refuses_a_mode_change():
         assert not vehicle.take_hold()
     finally:
         vehicle.close()
+
+
+def test_a_mode_change_with_a_base_mode_that_is_no_number_is_denied_not_left_unanswered():
+    """A COMMAND_LONG's params are floats: DO_SET_MODE with param1 NaN or infinite raised in int() (ValueError,
+    OverflowError), counted as rx_handler_error with no COMMAND_ACK for the ground station; as the other commands'
+    non-finite params, it is DENIED."""
+    from groundsim.io.mavlink_vehicle import ARDUCOPTER_GUIDED_MODE, MavlinkVehicle
+    from onboard.io.mavlink_wire import mavlink2
+
+    vehicle = MavlinkVehicle("udpout:127.0.0.1:9", guided=True)
+    try:
+        for base_mode in (float("nan"), float("inf")):
+            assert vehicle._set_mode(base_mode, ARDUCOPTER_GUIDED_MODE) == mavlink2.MAV_RESULT_DENIED
+        assert not vehicle.in_guided and not vehicle.take_hold()
+    finally:
+        vehicle.close()
