@@ -22,6 +22,7 @@ __all__ = [
     "frame_input_row",
     "json_object",
     "track_row",
+    "truth_objects_row",
     "truth_row",
     "unread_version",
 ]
@@ -101,6 +102,28 @@ def truth_row(data: bytes) -> dict:
             continue
         if not (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)):
             raise ValueError(f"field {name!r} is {_shown(value)}, not a finite number")
+    return obj
+
+
+def truth_objects_row(data: bytes) -> dict:
+    """A simulator's ``irtrack.truth_objects/1``, checked for the fields ``groundsim report``'s objects plot reads
+    (:func:`groundsim.evaluation.mot.recorded_mot`): ``objects`` a list of objects, each with an integer ``id`` and
+    its centre ``u_px``, ``v_px`` numbers or null (behind the camera)."""
+    obj = json_object(data, ("seq", "time_boot_us"))
+    objects = obj.get("objects")
+    if not isinstance(objects, list):
+        raise ValueError(f"field 'objects' is {objects!r}, not a list")
+    for i, o in enumerate(objects):
+        if not isinstance(o, dict):
+            raise ValueError(f"objects[{i}] is {_shown(o)}, not a JSON object")
+        if "id" not in o:
+            raise ValueError(f"objects[{i}]: no field 'id'")
+        if not _is_int(o["id"]):
+            raise ValueError(f"objects[{i}]: field 'id' is {_shown(o['id'])}, not an integer")
+        for name in ("u_px", "v_px"):
+            value = o.get(name)
+            if value is not None and not _is_number(value):
+                raise ValueError(f"objects[{i}]: field {name!r} is {_shown(value)}, not a number or null")
     return obj
 
 

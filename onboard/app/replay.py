@@ -112,6 +112,7 @@ from onboard.app.recorded_messages import (  # noqa: E402
     frame_input_row,
     json_object,
     track_row,
+    truth_objects_row,
     truth_row,
     unread_version,
 )
@@ -222,10 +223,7 @@ def load_recording(path: str) -> Recording:
             elif m.topic == TRUTH_TOPIC:
                 truth.append(truth_row(m.data))
             elif m.topic == TRUTH_OBJECTS_TOPIC:
-                obj = json_object(m.data, ("seq", "time_boot_us"))
-                if not isinstance(obj.get("objects"), list):
-                    raise ValueError(f"field 'objects' is {obj.get('objects')!r}, not a list")
-                truth_objects.append(obj)
+                truth_objects.append(truth_objects_row(m.data))
             elif m.schema == OBJECTS_SCHEMA:
                 objects.append(json_object(m.data, ("time_boot_us", "frame_index")))
             elif m.topic == IMAGING_POSE_TOPIC:

@@ -9,6 +9,8 @@ import io
 import json
 import math
 
+import pytest
+
 from groundsim.world.render.scene import ObjectLabel
 from groundsim.world.truth import OBJECT_COLUMNS, TRUTH_COLUMNS, TruthRow, object_rows, truth_objects_json
 from onboard.io.foxglove_messages import JSON_SCHEMAS, TRUTH_OBJECTS_SCHEMA
@@ -71,3 +73,38 @@ def test_truth_objects_are_recorded_as_the_csv_rows_with_their_schema(tmp_path):
         assert o["p_ned_m"] == [float(r["n_m"]), float(r["e_m"]), float(r["d_m"])]
     # annotations: the drawn objects only (the aircraft out of frame has no box), labelled by class and id
     assert [t.text for t in anns[2].texts] == ["target 0", "bird 1"]
+
+
+@pytest.mark.parametrize(
+    ("change", "said"),
+    [
+        (lambda o: {k: v for k, v in o.items() if k != "id"}, "no field 'id'"),
+        (lambda o: {**o, "u_px": "320"}, "'u_px'"),
+        (lambda o: {**o, "id": "x"}, "'id'"),
+    ],
+    ids=["object_without_id", "u_px_a_string", "id_a_string"],
+)
+def test_a_damaged_truth_object_is_refused_where_the_recording_is_read(tmp_path, change, said):
+    """groundsim report's objects.png reads each truth object's id, u_px and v_px
+    (groundsim.evaluation.mot.recorded_mot); load_recording, which says it checks every field the report reads,
+    checked only that 'objects' was a list, so a damaged object was a KeyError, TypeError or ValueError traceback in the report."""
+    from onboard.app.replay import load_recording
+    from onboard.core.errors import InputError
+    from tests.recording_edits import rewrite_recording
+
+    path, bad = tmp_path / "sim.mcap", tmp_path / "bad.mcap"
+    rec = FlightRecorder(RecordConfig(path=str(path)), recorder="groundsim")
+    rec.start()
+    for seq in range(3):
+        rec.on_truth_objects(truth_objects_json(_row(seq), LABELS))
+    rec.close()
+    assert len(load_recording(str(path)).truth_objects) == 3  # the simulator's own messages pass, null centres too
+
+    def damage(data: bytes) -> bytes:
+        msg = json.loads(data)
+        msg["objects"][0] = change(msg["objects"][0])
+        return json.dumps(msg).encode()
+
+    rewrite_recording(path, bad, lambda topic, i, _s: damage if topic == TRUTH_OBJECTS_TOPIC and i == 1 else None)
+    with pytest.raises(InputError, match=f"message 1 on {TRUTH_OBJECTS_TOPIC} .* is damaged: .*{said}"):
+        load_recording(str(bad))
