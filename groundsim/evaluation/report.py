@@ -387,7 +387,7 @@ def write_eval_report(out_dir, result, planned: int | None = None) -> dict:
     """Write everything for an :class:`groundsim.evaluation.eval.EvalResult` into ``out_dir``; returns ``{what: path}``.
 
     Files: ``report.json``, ``report.md``, ``<scenario>_trajectory.png``, ``<scenario>_error.png``,
-    ``<scenario>_frame.png`` and, for a run with the MOT files of a scene, ``<scenario>_objects.png`` (first seed of
+    ``<scenario>_frame.png`` and ``<scenario>_objects.png`` (from the MOT files: every object of a scene, else the target) (first seed of
     each scenario), ``performance.png``, and
     ``<scenario>/seed<N>/{truth,estimate,estimate_perfect}.tum`` for every run; an earlier report's files go
     first (:func:`clear_eval_report`).  ``planned``: the runs asked for, when fewer finished (an interrupted

@@ -117,7 +117,7 @@ def stopped_note(rec: Recording) -> str | None:
     reason = str(stopped.get("reason") or "no reason given")
     at = stopped.get("stopped_utc")
     return (
-        f"{rec.name}: the recording stopped before the flight ended{f' (at {at} UTC)' if at else ''}: {reason}; the "
+        f"{rec.name}: the recording stopped before the flight ended{f' (at {at})' if at else ''}: {reason}; the "
         "flight went on unrecorded, so the replay ends where the recording did"
     )
 

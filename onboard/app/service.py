@@ -943,6 +943,7 @@ class OnboardService:
             status["zenoh"] = {
                 "connect": list(self.config.zenoh.connect),
                 "listen": list(self.config.zenoh.listen),
+                "config_file": self.config.zenoh.config_file,
                 "routers": routers,
                 "peers": peers,
             }

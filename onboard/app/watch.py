@@ -95,7 +95,7 @@ class WatchCounts:
     first_observable_s: float | None = None
     bad: int = 0
     fleet_tracks: int = 0  # of ``tracks``, the fusion's (which carry no line of sight)
-    #: tracks no newer than the one before them (``seq`` and ``time_boot_us`` both not ahead): one daemon's tracks
+    #: tracks not newer than the one before them (``seq`` or ``time_boot_us`` not ahead): one daemon's tracks
     #: only move forward, so these are two publishers interleaving on the key (:data:`TWO_PUBLISHERS_RETURNS`)
     returns: int = 0
     _last: tuple[int, int] | None = None
@@ -114,7 +114,9 @@ class WatchCounts:
         """Note ``track``'s place in the stream; True when it is the :data:`TWO_PUBLISHERS_RETURNS`-th return (say it
         then, once)."""
         here = (track.seq, track.time_boot_us)
-        back = self._last is not None and here[0] <= self._last[0] and here[1] <= self._last[1]
+        # either number not ahead: two streams whose seq and time are ordered alike go back in both at each switch,
+        # two ordered oppositely (the higher seq, the earlier time) in one or the other; a restart goes back once
+        back = self._last is not None and (here[0] <= self._last[0] or here[1] <= self._last[1])
         self._last = here
         if back:
             self.returns += 1

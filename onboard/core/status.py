@@ -242,9 +242,10 @@ _GUIDANCE = _section(
     },
 )
 _ZENOH = _section(
-    "the zenoh session (onboard.app.service): the endpoints it dials and listens on, as configured, and the routers "
-    "and peers it has now (counted every 0.5 s; null: not known yet or zenoh did not say)",
-    {"connect": _STRS, "listen": _STRS, "routers": _INT_N, "peers": _INT_N},
+    "the zenoh session (onboard.app.service): the endpoints the daemon's zenoh section and options dial and listen on "
+    "(a zenoh config file's own endpoints are not listed: config_file names it), and the routers and peers the "
+    "session has now (counted every 0.5 s; null: not known yet or zenoh did not say)",
+    {"connect": _STRS, "listen": _STRS, "config_file": _STR_N, "routers": _INT_N, "peers": _INT_N},
 )
 
 #: Every top-level key :func:`build_status` writes, in its order, with its JSON Schema (its docstring says what each

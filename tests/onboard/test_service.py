@@ -550,7 +550,7 @@ def test_daemon_end_to_end(tmp_path, daemon_env):
         # one run: every track and status states its id (a restarted daemon draws another)
         assert is_run_id(st["run_id"]) and {t.run_id for t in got_tracks} == {st["run_id"]}
         # the session as configured, and the one peer it has: this test's session (no router on this loopback)
-        assert st["zenoh"]["connect"] == [f"tcp/127.0.0.1:{zport}"]
+        assert st["zenoh"]["connect"] == [f"tcp/127.0.0.1:{zport}"] and st["zenoh"]["config_file"] is None
         assert (st["zenoh"]["routers"], st["zenoh"]["peers"]) == (0, 1)
         assert st["processing_ms"]["n"] > 0 and st["processing_ms"]["p50"] > 0
         assert st["latency_ms"]["p50"] is not None and st["cpu"]["share"] is not None

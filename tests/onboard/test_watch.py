@@ -493,7 +493,7 @@ def _searching(seq: int, t_us: int) -> bytes:
 
 @pytest.mark.parametrize(
     "case",
-    ["one camera, two daemons", "two cameras"],
+    ["one camera, two daemons", "two cameras", "two cameras, seq and time ordered oppositely"],
 )
 def test_two_publishers_interleaving_on_the_track_key_are_said_once(case):
     """Two daemons named uav1 publish on one key: of one camera, each frame comes twice; of two, two numberings and
@@ -502,6 +502,10 @@ def test_two_publishers_interleaving_on_the_track_key_are_said_once(case):
 
     if case == "one camera, two daemons":
         payloads = [_searching(k, 1_000_000 + 33_333 * k) for k in range(20) for _ in range(2)]
+    elif case == "two cameras, seq and time ordered oppositely":  # the higher seq, the earlier time: went unsaid
+        payloads = [
+            p for k in range(20) for p in (_searching(500 + k, 1_000_000 + k), _searching(k, 9_000_000 + 33_333 * k))
+        ]
     else:
         payloads = [
             p for k in range(20) for p in (_searching(k, 1_000_000 + 33_333 * k), _searching(500 + k, 9_000_000 + k))
