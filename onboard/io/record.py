@@ -520,7 +520,7 @@ class FlightRecorder:
                 raise
             # a disk with no room at all is the min_free_mb case, not a wrong path: the daemon that exited 2 here
             # tracked nothing, while one with a few MB free flew unrecorded
-            self._abandon_first_file()
+            self._abandon_file(0)
             self.stopped = f"no room to start it ({_os_error_text(exc)})"
             log.warning("recorder: not recording to %s: %s", self.path, self.stopped)
             return
@@ -717,9 +717,10 @@ class FlightRecorder:
                     log.warning("recorder: cannot delete %s: %s", old, exc)
         log.info("recording to %s", path)
 
-    def _abandon_first_file(self) -> None:
-        """Close and remove the first file when its header did not fit (made here, exclusively: no one else's), so that
-        no torn file is left for a reader or for the next start's :func:`free_recording_path` to step around."""
+    def _abandon_file(self, index: int) -> None:
+        """Close and remove file ``index`` when its header did not fit (made here, exclusively: no one else's), so that
+        no torn file is left for a reader, a replay of the rotated files, or the next start's
+        :func:`free_recording_path` to step around."""
         f, self._file, self._writer = self._file, None, None
         if f is None:  # the open itself was refused: nothing made
             return
@@ -728,9 +729,9 @@ class FlightRecorder:
         except OSError:
             pass  # the data it could not write is what is being thrown away
         try:
-            os.unlink(rotated_path(self.path, 0))
+            os.unlink(rotated_path(self.path, index))
         except OSError as exc:
-            log.warning("recorder: cannot remove the torn %s: %s", rotated_path(self.path, 0), exc)
+            log.warning("recorder: cannot remove the torn %s: %s", rotated_path(self.path, index), exc)
 
     def _note_stopped(self, reason: str) -> None:
         """Write the :data:`STOPPED_METADATA` record into the file being finished, so that the file itself says why
@@ -846,7 +847,13 @@ class FlightRecorder:
         if reason is not None:
             self._halt(reason, [], refused=False)
             return False
-        self._open(index)
+        try:
+            self._open(index)
+        except OSError:
+            # the next file's header did not fit (or it could not be made): none of it is left torn and unlisted;
+            # the writer loop stops the recording, the file before it finished whole
+            self._abandon_file(index)
+            raise
         return True
 
     # encoding ---------------------------------------------------------

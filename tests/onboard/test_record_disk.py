@@ -247,3 +247,27 @@ def test_a_discarded_chunk_takes_the_schema_and_channel_first_written_in_it_out_
     assert in_data == {("Schema", s1), ("Channel", c1)}
     assert set(summary.schemas) == {s1} and set(summary.channels) == {c1}
     assert (summary.statistics.schema_count, summary.statistics.channel_count) == (1, 1)
+
+
+def test_a_rotation_whose_next_file_has_no_room_leaves_no_torn_file(tmp_path, monkeypatch, caplog):
+    """The review of the full-disk-at-start fix: the same refusal at a rotation (the next file's header) left
+    FILE.1.mcap torn on disk and in no list, for a replay of the rotated files to trip on.  Now it is removed and the
+    recording stops, the file before it whole."""
+    from tests.onboard.test_record import below_floors
+
+    def writev(fd, bufs):
+        if os.readlink(f"/proc/self/fd/{fd}").endswith("f.1.mcap"):  # the second file: no room at all
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return REAL_WRITEV(fd, bufs)
+
+    monkeypatch.setattr(mcap_chunks.os, "writev", writev)
+    rec = FlightRecorder(below_floors(_config(tmp_path, min_free_mb=0.0), max_file_mb=0.3), vehicle="uav1")
+    rec.start()
+    with caplog.at_level("WARNING", logger="onboard.io.record"):
+        handed = _record_until_stopped(rec)
+    assert "rotate failed" in rec.stopped and "No space left on device" in rec.stopped
+    assert [Path(f).name for f in rec.files] == ["f.mcap"] and sorted(p.name for p in tmp_path.iterdir()) == ["f.mcap"]
+    with open(rec.files[0], "rb") as f:  # whole and indexed, to the mcap package's reader
+        n = sum(1 for _ in mcap_reader.make_reader(f).iter_messages())
+    assert n == rec.messages_written >= 4 and rec.messages_written + rec.dropped == handed
+    assert any(f"{tmp_path / 'f.mcap'} ends there" in r.getMessage() for r in caplog.records)
