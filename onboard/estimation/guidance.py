@@ -836,8 +836,10 @@ class SetpointGate:
                 )
             self._link_was_up = True
         if self.state == "stopped":
-            if not link_up and self.why.startswith("pose_lost") and "heartbeat" not in self.why:
-                # the poses stopped first, then the heartbeat too: the link it was, said where the status shows it
+            late = not heartbeat_age_s <= HEARTBEAT_LATE_S
+            if (not link_up or late) and self.why.startswith("pose_lost") and "heartbeat" not in self.why:
+                # the poses stopped first, then the heartbeat too (late, if not yet timed out: a cut of 1.5-2.5 s ends
+                # before the link's timeout): the link it was, said where the status shows it
                 self.why += " (then no autopilot heartbeat either: the MAVLink link)"
             if link_up and not accepting:  # the pilot took the vehicle back: re-arm the gate
                 self._brake_until_s = -math.inf
