@@ -737,7 +737,9 @@ class SetpointGate:
     a vehicle that never had a 3-D fix is positioned otherwise and not judged by it) and the advice still valid.  A
     limit reached or the link lost while sending stops it (``stopped``, latched, ``why`` says which): for
     :data:`BRAKE_S` the setpoint is zero velocity (the vehicle holds where it is instead of flying the last setpoint
-    on until the autopilot's timeout: 3 s, 36 m at 12 m/s on ArduCopter), then nothing; setpoints resume only after
+    on until the autopilot's timeout: 3 s, 36 m at 12 m/s on ArduCopter), then nothing; after a link loss, again for
+    :data:`BRAKE_S` when the link comes back with the autopilot still in the accepting mode (the first brake went
+    into the dead link); setpoints resume only after
     the autopilot has left the accepting mode (the pilot took over) and re-entered it.  The advice ending (expired, none in force, a target lost) brakes
     the same way, unlatched: the next advice is sent.  Where the accepting autopilot is PX4, whose OFFBOARD mode
     needs the stream to go on, the setpoint between advices is zero velocity at the setpoint rate (``holding``)
@@ -826,6 +828,10 @@ class SetpointGate:
             self._mode_seen = False
         elif mode is not None and not self._mode_seen:
             self._mode_seen = True
+            if accepting and self.state == "stopped" and self.why.startswith("link_lost"):
+                # the brake went into the dead link and may not have arrived: the vehicle, still in the mode, may be
+                # flying the last setpoint until its own timeout (ArduCopter: 3 s); zero velocity again now it hears
+                self._brake_until_s = now_s + BRAKE_S
             # in the mode before this daemon saw it enter it: not handed over to this daemon (a gate already stopped,
             # e.g. by the loss while commanding, stays latched under its own reason)
             if accepting and self.state != "stopped":

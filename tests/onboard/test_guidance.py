@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 from onboard.core.errors import InputError
 from onboard.core.schema import SchemaError, build
 from onboard.estimation.guidance import (
+    BRAKE_S,
     GuidanceConfig,
     GuidancePlanner,
     ObserverState,
@@ -575,9 +576,12 @@ def test_a_link_that_comes_back_in_the_accepting_mode_waits_for_the_pilot_to_han
     assert step(9.0, GUIDED).send  # the switch seen: handed over
     d = step(9.25, None, link=False)  # lost while commanding: braking, latched
     assert d.send and not d.v_ned_mps.any() and d.why.startswith("link_lost")
-    assert not step(16.0, GUIDED).send and gate.state == "stopped" and gate.why.startswith("link_lost")
-    assert step(16.5, LOITER).state == "not_accepting"
-    assert step(17.0, GUIDED).send
+    # back in the mode: zero velocity again for BRAKE_S (the brake went into the dead link), still latched
+    d = step(16.0, GUIDED)
+    assert d.send and not d.v_ned_mps.any() and gate.state == "stopped" and gate.why.startswith("link_lost")
+    assert not step(16.0 + BRAKE_S, GUIDED).send and gate.state == "stopped"
+    assert step(16.5 + BRAKE_S, LOITER).state == "not_accepting"
+    assert step(17.0 + BRAKE_S, GUIDED).send
     assert gate.stops == {"handover": 1, "link_lost": 1}
 
 
@@ -604,7 +608,11 @@ def test_setpoints_stop_once_the_autopilots_heartbeat_is_older_than_the_guidance
     assert d.why == "link_lost: no autopilot heartbeat for guidance.heartbeat_timeout_s"
     assert step(3.75, GUIDED, 3.45).send  # the brake: zero velocity for BRAKE_S
     assert not step(4.25, GUIDED, 3.95).send
-    assert not step(4.5, GUIDED, 0.0).send and gate.state == "stopped"  # heard again: latched until the hand-over
+    # heard again, still in the mode: zero velocity for BRAKE_S more (the first brake went into the dead link),
+    # then nothing, latched until the hand-over
+    d = step(4.5, GUIDED, 0.0)
+    assert d.send and not d.v_ned_mps.any() and gate.state == "stopped"
+    assert step(4.5 + BRAKE_S - 0.1, GUIDED, 0.1).send and not step(4.5 + BRAKE_S, GUIDED, 0.1).send
     assert gate.stops == {"link_lost": 1}
     idle = SetpointGate(build(GuidanceConfig, {"enabled": True}))
     idle.step(0.0, link_connected=True, mode=LOITER, pose=pose, advice=None, heartbeat_age_s=0.0)
