@@ -26,6 +26,9 @@ from onboard.app.config import OnboardConfig
 from onboard.core.irframe import IrFrame
 from onboard.estimation.guidance import Advice, GuidanceAdvisor, GuidancePlanner, SetpointGate, advice_to_json
 
+#: what ends a stop of the setpoints (the gate latches it), in the log line and the status
+RESUMES_AFTER_STOP = "until the autopilot leaves the accepting mode and re-enters it (the pilot's hand-over)"
+
 __all__ = ["GuidanceTap", "fixed_pod_heading_warning", "make_guidance_tap", "moving_geofence_warning"]
 
 log = logging.getLogger(__name__)
@@ -294,11 +297,7 @@ class GuidanceTap:
         if decision.state != self._last_state:
             level = logging.WARNING if decision.state == "stopped" else logging.INFO
             # a stop is latched: the operator reading it must learn what ends it, not only why it came
-            latched = (
-                "; no setpoints until the autopilot leaves the accepting mode and re-enters it (the pilot's hand-over)"
-                if decision.state == "stopped"
-                else ""
-            )
+            latched = f"; no setpoints {RESUMES_AFTER_STOP}" if decision.state == "stopped" else ""
             log.log(
                 level,
                 "guidance in the loop: %s%s%s",
@@ -380,6 +379,8 @@ class GuidanceTap:
             "setpoints": {
                 "state": self.gate.state,
                 "why": self.gate.why,
+                # a stop is latched: what ends it, for an operator reading the status rather than the log
+                "resumes": RESUMES_AFTER_STOP if self.gate.state == "stopped" else None,
                 "sent": self.setpoints_sent,
                 "errors": self.setpoint_errors,
                 "stops": dict(self.gate.stops),

@@ -237,7 +237,15 @@ _GUIDANCE = _section(
         "last_manoeuvre": _STR_N,
         "setpoints": _section(
             "setpoints to the autopilot: the gate's state and why, what was sent, stops and advice ends by reason",
-            {"state": _STR, "why": _STR, "sent": _INT, "errors": _INT, "stops": _COUNTS, "advice_ends": _COUNTS},
+            {
+                "state": _STR,
+                "why": _STR,
+                "resumes": {**_STR_N, "description": "while stopped: what ends the stop (the pilot's hand-over)"},
+                "sent": _INT,
+                "errors": _INT,
+                "stops": _COUNTS,
+                "advice_ends": _COUNTS,
+            },
         ),
     },
 )

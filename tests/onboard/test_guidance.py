@@ -408,6 +408,7 @@ def test_tap_sends_the_advice_in_force_to_the_autopilot_only_through_the_gate():
     tap.on_frame(None, FrameResult(0, True, pose, track, None))  # the pose the gate checks
     assert tap.step(track, pose) is not None  # an advice in force for valid_for_s
     assert not tap.setpoint_step(now[0], link) and tap.status()["setpoints"]["state"] == "not_accepting"
+    assert tap.status()["setpoints"]["resumes"] is None
     link.autopilot_mode = GUIDED
     now[0] += 1.0
     assert tap.setpoint_step(now[0], link) and len(sent) == 1
@@ -693,6 +694,8 @@ def test_a_pose_dead_reckoned_through_a_gnss_outage_is_not_fresh_for_the_gate():
     tap.on_frame(None, FrameResult(0, True, _pose(extrapolated_us=1_500_000), None, None))  # 1.5 s of dead reckoning
     assert tap.setpoint_step(now[0], link)  # the brake: zero velocity
     assert not sent[-1].any() and tap.status()["setpoints"]["state"] == "stopped"
+    # what ends the stop, in the status too (not only in the log line)
+    assert tap.status()["setpoints"]["resumes"].startswith("until the autopilot leaves the accepting mode")
     assert tap.status()["setpoints"]["why"].startswith("pose_lost")
 
 

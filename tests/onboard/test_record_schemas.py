@@ -161,7 +161,7 @@ def test_the_status_sections_of_their_producers_conform():
     status["guidance"] = {
         "in_loop": False, "updates": 3, "advised": 1, "published": 1, "publish_errors": 0, "skipped": {},
         "last_status": "advise", "last_manoeuvre": "weave", "setpoints": {"state": "off",
-        "why": "guidance.enabled is false", "sent": 0, "errors": 0, "stops": {}, "advice_ends": {"answer_no_gain": 1}},
+        "why": "guidance.enabled is false", "resumes": None, "sent": 0, "errors": 0, "stops": {}, "advice_ends": {"answer_no_gain": 1}},
     }  # fmt: skip
     status["live_view"] = LiveView(LiveViewConfig(), port=0).stats()  # not started: no socket
     assert check(status, JSON_SCHEMAS[STATUS_SCHEMA]) == []
