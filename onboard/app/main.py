@@ -234,7 +234,7 @@ def _check_problem(config, checked: list[str]) -> str | None:
 
     from onboard.app.health import claim_health_file, health_folder_problem
     from onboard.core.errors import ConfigError
-    from onboard.io.record_files import record_path_problem
+    from onboard.io.record_files import free_disk_bytes, record_path_problem
     from onboard.io.zenoh_session import DAEMON_CONFIG_FILE_FIELD, ZenohConfigError, build_config
 
     try:
@@ -246,7 +246,16 @@ def _check_problem(config, checked: list[str]) -> str | None:
         problem = record_path_problem(config.record.path)
         if problem is not None:
             return f"record.path: cannot write {problem}"
-        checked.append("record.path writable")
+        free, floor = free_disk_bytes(config.record.path), config.record.min_free_bytes
+        if free is not None and free < floor:
+            # the start would fly unrecorded (said then as a warning): a check that says a bare 'ok' here is the
+            # surprise the operator runs it to avoid; the write test's empty file needs no space at all
+            checked.append(
+                f"record.path writable but {free / 1e6:.0f} MB free, under record.min_free_mb "
+                f"({config.record.min_free_mb:g}): the daemon would fly unrecorded"
+            )
+        else:
+            checked.append("record.path writable")
     if config.live_view.port is not None:
         try:
             socket.getaddrinfo(config.live_view.host, config.live_view.port, type=socket.SOCK_STREAM)

@@ -95,7 +95,7 @@ def test_check_refuses_a_liveness_file_in_a_folder_where_none_can_be_made(where,
     assert not [p for p in tmp_path.rglob(".irtrack-check-*")]  # the check's own file is gone
 
 
-def test_the_check_says_what_it_checked(tmp_path, capsys):
+def test_the_check_says_what_it_checked(tmp_path, capsys, monkeypatch):
     """'ok' alone did not say what was checked, nor that no link was tried."""
     from onboard.app.main import main
 
@@ -113,6 +113,13 @@ def test_the_check_says_what_it_checked(tmp_path, capsys):
         "(defaults) with output.health_file (--set), record.path (--record), live_view.port (--live-view): ok (every"
         " field, zenoh config, record.path writable, live_view.host resolves; no link opened)\n"
     ), out
+    # a disk with less free than record.min_free_mb: the daemon would fly unrecorded, and the check says so
+    import onboard.io.record_files as record_files
+
+    monkeypatch.setattr(record_files, "free_disk_bytes", lambda path: 5_000_000)
+    assert main(["--set", "output.health_file=null", "--record", str(record), "--check"]) == 0
+    out = capsys.readouterr().out
+    assert "record.path writable but 5 MB free, under record.min_free_mb (200): the daemon would fly unrecorded" in out
 
 
 def test_the_check_names_the_variables_and_options_it_checked_beside_the_file(monkeypatch, capsys):
