@@ -125,6 +125,9 @@ class GuidanceConfig:
     require_armed: Bool = True
     geofence_north_m: Annotated[tuple[float, float], Numbers(2)] = (-300.0, 300.0)
     geofence_east_m: Annotated[tuple[float, float], Numbers(2)] = (-300.0, 300.0)
+    # the planner's manoeuvres stay this far inside the box: the airframe lags the turn it plans, and a vehicle past
+    # the box is a latched stop (a planned path grazing the edge was flown 0.2 m past it in the loop)
+    geofence_margin_m: Annotated[float, Number(0.0, 10_000.0)] = 10.0
     speed_margin_mps: Annotated[float, Number(0.0, 50.0)] = 2.0
     pose_timeout_s: Annotated[float, Number(0.1, 60.0)] = 1.0
     heartbeat_timeout_s: Annotated[float, Number(1.5, 60.0)] = 2.5
@@ -153,6 +156,10 @@ class GuidanceConfig:
             lo, hi = getattr(self, name)
             if not lo < hi:
                 raise Invalid(name, "[min, max] with min < max, metres from the NED origin", [lo, hi])
+            if not 2.0 * self.geofence_margin_m < hi - lo:  # the planner would find no place to fly
+                raise Invalid(
+                    "geofence_margin_m", f"< half of {name}'s span ({(hi - lo) / 2:g} m)", self.geofence_margin_m
+                )
         if self.sample_interval_s * 10 > self.horizon_s:
             raise Invalid("sample_interval_s", f"<= horizon_s / 10 ({self.horizon_s / 10:g})", self.sample_interval_s)
         if self.valid_for_s > self.horizon_s:  # flown beyond what the planner looked at
@@ -199,6 +206,17 @@ class GuidanceConfig:
         p = np.asarray(p_ned_m, dtype=float)
         (n0, n1), (e0, e1) = self.geofence_north_m, self.geofence_east_m
         return bool(np.all((n0 <= p[..., 0]) & (p[..., 0] <= n1) & (e0 <= p[..., 1]) & (p[..., 1] <= e1)))
+
+    def fence_excess_m(self, p_ned_m: np.ndarray) -> np.ndarray:
+        """How far each position (..., 3) lies outside the geofence box shrunk by ``geofence_margin_m`` (0 within),
+        metres: the planner's distance from the fence."""
+        p = np.asarray(p_ned_m, dtype=float)
+        m = self.geofence_margin_m
+        (n0, n1), (e0, e1) = self.geofence_north_m, self.geofence_east_m
+        out = np.maximum(
+            np.maximum(n0 + m - p[..., 0], p[..., 0] - (n1 - m)), np.maximum(e0 + m - p[..., 1], p[..., 1] - (e1 - m))
+        )
+        return np.maximum(out, 0.0)
 
     def altitude_ok(self, p_ned_m: np.ndarray, slack_m: float = 1e-9) -> bool:
         """Whether every position (..., 3) is within the altitude band."""
@@ -447,6 +465,11 @@ class GuidancePlanner:
         if not c.altitude_ok(p_obs):
             return False, "altitude"
         if not c.inside_geofence(p_obs):  # the gate stops a vehicle outside it; never plan it out there
+            return False, "geofence"
+        # nor into the margin inside it (the airframe lags the planned turn): a path that starts within the margin
+        # (p_obs[0] is the observer now) may only keep or gain its distance from the fence
+        excess = c.fence_excess_m(p_obs)
+        if np.any(excess > excess[0] + 1e-9):
             return False, "geofence"
         los = p_tgt - p_obs
         el = np.degrees(np.arctan2(-los[:, 2], np.hypot(los[:, 0], los[:, 1])))

@@ -1131,3 +1131,31 @@ def test_a_stop_is_logged_once_with_how_the_setpoints_resume(caplog):
     assert tap.status()["setpoints"]["state"] == "stopped"
     assert len(stops) == 1 and "pose_lost" in stops[0], stops
     assert "until the autopilot leaves the accepting mode and re-enters it" in stops[0], stops[0]
+
+
+def test_the_planner_keeps_its_manoeuvres_geofence_margin_m_inside_the_box_and_lets_a_vehicle_in_the_margin_move_in(
+    planner,
+):
+    """The guidance audit flew a turn planned to graze the box's edge: the airframe lagged it, re-planning found
+    nothing feasible mid-turn, and the vehicle coasted 0.2 m past the box (a latched stop).  The planner now keeps
+    geofence_margin_m (10 m) inside; a vehicle already within the margin may only keep or gain its distance."""
+    from onboard.core.errors import ConfigError
+
+    c = build(GuidanceConfig, {"geofence_north_m": [-100.0, 100.0], "geofence_east_m": [-50.0, 50.0]})
+    assert c.geofence_margin_m == 10.0
+    pts = np.array([[0.0, 0.0, -60.0], [95.0, 0.0, -60.0], [0.0, -45.0, -60.0], [120.0, 60.0, -60.0]])
+    assert c.fence_excess_m(pts).tolist() == [0.0, 5.0, 5.0, 30.0]
+    with pytest.raises(ConfigError, match="geofence_margin_m"):
+        build(GuidanceConfig, {"geofence_east_m": [-10.0, 10.0]})  # no room left inside a 10 m margin
+    pl = GuidancePlanner(c, planner.estimator, F_PX)
+    t = np.linspace(0.0, 4.0, 5)[:, None]
+    tgt = np.tile([0.0, 200.0, -60.0], (5, 1))  # well in view of every path below
+
+    def path(start_n: float, v_n: float):
+        p = np.array([start_n, 0.0, -60.0]) + t * np.array([v_n, 0.0, 0.0])
+        return pl.feasibility("turn_45", np.array([v_n, 0.0, 0.0]), p, tgt, np.tile([v_n, 0.0, 0.0], (5, 1)))
+
+    assert path(70.0, 4.0) == (True, "")  # ends at 86 m: 14 m inside
+    assert path(70.0, 6.0) == (False, "geofence")  # ends at 94 m: inside the box, within its margin
+    assert path(95.0, -6.0) == (True, "")  # within the margin: back inwards
+    assert path(95.0, 1.0) == (False, "geofence")  # within the margin: further out
