@@ -261,24 +261,24 @@ class StreamCheck:
         if p is not None and not float(np.linalg.norm(p)) <= MAX_CAMERA_DISTANCE_M:
             return "camera_far"
         st = self._streams.get(vehicle)
+        restarted = False
         if st is not None and run_id is not None and st.runs and run_id != st.runs[-1]:
             if run_id in st.runs:  # an earlier run back after a newer one: two daemons take turns under the name
                 return self._judge(vehicle, st, True, arrival_unix_s, "run_returned")
-            runs, anomalies = st.runs, st.anomalies
-            st = self._streams[vehicle] = _Stream(seq, time_boot_us, runs=runs, anomalies=anomalies)
-            self._note(st, seq, time_boot_us, p)
-            st.runs.append(run_id)
-            if p is not None:
-                st.anchor = (t_s, p)
-            return "restarted"
-        if st is None:
-            st = self._streams[vehicle] = _Stream(seq, time_boot_us)
+            restarted = True
+        if st is None or restarted:  # the vehicle's first track, or its daemon's new run: the stream starts here
+            # (a restart keeps the runs it has seen and its anomalies: a clash in progress is not forgotten)
+            st = self._streams[vehicle] = (
+                _Stream(seq, time_boot_us)
+                if st is None
+                else _Stream(seq, time_boot_us, runs=st.runs, anomalies=st.anomalies)
+            )
             self._note(st, seq, time_boot_us, p)
             if run_id is not None:
                 st.runs.append(run_id)
             if p is not None:
                 st.anchor = (t_s, p)
-            return None
+            return "restarted" if restarted else None
         if run_id is not None and not st.runs:
             st.runs.append(run_id)
         if (seq, time_boot_us) in st.seen:
