@@ -201,22 +201,24 @@ class GuidanceConfig:
             and abs(float(v_ned_mps[2])) <= self.max_climb_rate_mps + slack_mps
         )
 
-    def inside_geofence(self, p_ned_m: np.ndarray) -> bool:
-        """Whether every position (..., 3) is inside the geofence box (north, east about the NED origin)."""
+    def _beyond_box_m(self, p_ned_m: np.ndarray, margin_m: float) -> np.ndarray:
+        """How far each position (..., 3) lies beyond the geofence box shrunk by ``margin_m`` (north, east about the
+        NED origin), metres: negative inside, 0 on its edge, NaN for a position that is not a number."""
         p = np.asarray(p_ned_m, dtype=float)
         (n0, n1), (e0, e1) = self.geofence_north_m, self.geofence_east_m
-        return bool(np.all((n0 <= p[..., 0]) & (p[..., 0] <= n1) & (e0 <= p[..., 1]) & (p[..., 1] <= e1)))
+        return np.maximum(
+            np.maximum(n0 + margin_m - p[..., 0], p[..., 0] - (n1 - margin_m)),
+            np.maximum(e0 + margin_m - p[..., 1], p[..., 1] - (e1 - margin_m)),
+        )
+
+    def inside_geofence(self, p_ned_m: np.ndarray) -> bool:
+        """Whether every position (..., 3) is inside the geofence box, its edge included."""
+        return bool(np.all(self._beyond_box_m(p_ned_m, 0.0) <= 0.0))
 
     def fence_excess_m(self, p_ned_m: np.ndarray) -> np.ndarray:
         """How far each position (..., 3) lies outside the geofence box shrunk by ``geofence_margin_m`` (0 within),
         metres: the planner's distance from the fence."""
-        p = np.asarray(p_ned_m, dtype=float)
-        m = self.geofence_margin_m
-        (n0, n1), (e0, e1) = self.geofence_north_m, self.geofence_east_m
-        out = np.maximum(
-            np.maximum(n0 + m - p[..., 0], p[..., 0] - (n1 - m)), np.maximum(e0 + m - p[..., 1], p[..., 1] - (e1 - m))
-        )
-        return np.maximum(out, 0.0)
+        return np.maximum(self._beyond_box_m(p_ned_m, self.geofence_margin_m), 0.0)
 
     def altitude_ok(self, p_ned_m: np.ndarray, slack_m: float = 1e-9) -> bool:
         """Whether every position (..., 3) is within the altitude band."""
