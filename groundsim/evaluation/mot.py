@@ -39,6 +39,7 @@ __all__ = [
     "gt_rows",
     "gt_line",
     "tracker_rows",
+    "tracker_line",
     "seq_name",
     "write_mot",
     "clear_mot",
@@ -118,10 +119,13 @@ def unscorable_objects(objects=None, track=None) -> int:
 def tracker_rows(frame: int, objects=None, track=None) -> list[str]:
     """Tracker lines of one frame: ``objects`` an ObjectsUpdate (its confirmed objects), else ``track``
     (a Track: one line while tracking)."""
-    return [
-        f"{frame},{i},{square_box(u, v)},{'1' if score is None else f'{max(score, 0.0):.3f}'},-1,-1,-1\n"
-        for i, u, v, score in _tracked(objects, track)
-    ]
+    return [tracker_line(frame, i, u, v, score) for i, u, v, score in _tracked(objects, track)]
+
+
+def tracker_line(frame: int, object_id: int, u: float, v: float, score: float | None = None) -> str:
+    """One tracker-file line: ``object_id``'s ``BOX_SIDE_PX`` square about ``(u, v)`` on 1-based ``frame``, its
+    detection ``score`` (3 decimals, at least 0; 1 when None)."""
+    return f"{frame},{object_id},{square_box(u, v)},{'1' if score is None else f'{max(score, 0.0):.3f}'},-1,-1,-1\n"
 
 
 def seq_name(scenario: str, nav: str, seed: int) -> str:
@@ -448,6 +452,6 @@ def recorded_mot(truth_objects: list[dict], objects: list[dict]) -> tuple[str, s
         for o in m.get("objects") or []:
             if o.get("state") != "confirmed":
                 continue
-            trk.append(f"{k},{int(o['id'])},{square_box(float(o['u_px']), float(o['v_px']))},1,-1,-1,-1\n")
+            trk.append(tracker_line(k, int(o["id"]), float(o["u_px"]), float(o["v_px"])))
     t0 = frames[0][0] if frames else 0
     return "".join(gt), "".join(trk), [(t_us - t0) / 1e6 for t_us, _ in frames]
