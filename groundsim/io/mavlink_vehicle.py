@@ -654,13 +654,7 @@ class MavlinkVehicle:
                     self._setpoints.append(SetPositionTargetLocalNed.from_message(msg).v_ned_mps)
                 elif mtype == "SET_MODE" and msg.target_system == self.sysid:
                     # (deprecated, still what many ground stations send); ArduPilot acks it with the message's id
-                    result = self._set_mode(msg.base_mode, msg.custom_mode)
-                    self._conn.mav.send(
-                        command_ack_message(
-                            mavlink2.MAVLINK_MSG_ID_SET_MODE, result, msg.get_srcSystem(), msg.get_srcComponent()
-                        )
-                    )
-                    self.counters[_ACK_COUNTER.get(result, "ack_other")] += 1
+                    self._ack(mavlink2.MAVLINK_MSG_ID_SET_MODE, self._set_mode(msg.base_mode, msg.custom_mode), msg)
                     sent += 1
                 elif (
                     mtype == "HEARTBEAT"
@@ -799,12 +793,16 @@ class MavlinkVehicle:
             result = self._set_mode(msg.param1, msg.param2)
         else:
             result = mavlink2.MAV_RESULT_UNSUPPORTED
-        self._conn.mav.send(command_ack_message(cmd, result, msg.get_srcSystem(), msg.get_srcComponent()))
-        self.counters[_ACK_COUNTER.get(result, "ack_other")] += 1
+        self._ack(cmd, result, msg)
         if interval_of is None:
             return 1
         self._conn.mav.message_interval_send(*interval_of)
         return 2
+
+    def _ack(self, command: int, result: int, msg) -> None:
+        """COMMAND_ACK of ``command`` with ``result`` to ``msg``'s sender, counted by result."""
+        self._conn.mav.send(command_ack_message(command, result, msg.get_srcSystem(), msg.get_srcComponent()))
+        self.counters[_ACK_COUNTER.get(result, "ack_other")] += 1
 
     def _interval_report(self, param: float) -> tuple[int, int] | None:
         """MESSAGE_INTERVAL's (message_id, interval_us) for a message id: -1 for a stream switched off, 0 for a
