@@ -11,7 +11,7 @@ the tracker's state, then the 3-D position (WGS84 and local NED) with its 1-sigm
 and its relative sigma when the estimator has one, else the line of sight (azimuth / elevation), else the
 pixel; last the quality verdict ``observable yes|no``.  ``--json`` prints the payloads as received, one
 per line, for ``jq`` and friends (the start and summary lines then go to stderr).  Tracks that go back and forth
-in ``seq`` and ``time_boot_us`` (:data:`TWO_PUBLISHERS_RETURNS` not newer than the one before) are two publishers
+in ``seq`` or ``time_boot_us`` (:data:`TWO_PUBLISHERS_RETURNS` not newer than the one before) are two publishers
 on the key, two daemons of one name: said once on stderr (:func:`two_publishers_line`) and in the summary.
 
 The zenoh options are the daemon's (:mod:`onboard.io.zenoh_session`); with no endpoint and no file the
@@ -263,7 +263,7 @@ def summary_line(counts: WatchCounts, seconds: float) -> str:
     if len(counts.runs) > 1:
         text += f"; {len(counts.runs)} daemon runs (run_id {', '.join(counts.runs)})"
     if counts.returns >= TWO_PUBLISHERS_RETURNS:
-        text += f"; {counts.returns} tracks went back in seq and time: two publishers on the key"
+        text += f"; {counts.returns} tracks went back in seq or time: two publishers on the key"
     if counts.tracks + counts.bad == 0:
         text += "; nothing arrived: is the daemon running, and zenoh connected to it?"
     return text
@@ -281,7 +281,7 @@ def new_run_line(vehicle: str, before: str, run: str) -> str:
 def two_publishers_line(vehicle: str) -> str:
     """The one line said when the tracks go back and forth: two daemons (or cameras) publish as ``vehicle``."""
     return (
-        f"the tracks of {vehicle} go back and forth in seq and time: two publishers share the key (two daemons named "
+        f"the tracks of {vehicle} go back and forth in seq or time: two publishers share the key (two daemons named "
         f"{vehicle}? each one's status warns name_clash); these lines mix two vehicles' or two daemons' tracks"
     )
 
