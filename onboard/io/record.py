@@ -124,7 +124,6 @@ import base64
 import collections
 import datetime
 import errno
-import functools
 import json
 import logging
 import math
@@ -133,10 +132,9 @@ import threading
 import time
 import uuid
 from collections.abc import Callable, Mapping
-from typing import TYPE_CHECKING, Annotated, Any, Literal
+from typing import TYPE_CHECKING, Any
 
 from onboard.core.errors import InputError
-from onboard.core.schema import Bool, Integer, Number, Text, config_dataclass
 from onboard.core.status import STATUS_SCHEMA
 from onboard.core.track import TRACK_SCHEMA, track_to_bytes
 from onboard.io.foxglove_messages import (
@@ -154,6 +152,7 @@ from onboard.io.foxglove_messages import (
     truth_objects_annotations,
 )
 from onboard.io.pose_json import pose_to_json
+from onboard.io.record_config import MB, RecordConfig
 from onboard.io.record_files import free_disk_bytes, free_recording_path, rotated_path
 from onboard.io.worker_queue import stop_and_join
 
@@ -188,7 +187,6 @@ TRUTH_TOPIC = "/groundsim/truth"
 OBJECT_ANNOTATIONS_TOPIC = "/onboard/object_annotations"
 TRUTH_OBJECTS_TOPIC = "/groundsim/truth/objects"
 TRUTH_ANNOTATIONS_TOPIC = "/groundsim/truth/annotations"
-MB = 1_000_000
 #: the metadata record that says, in the file itself, why the recording stopped before the flight ended
 STOPPED_METADATA = "irtrack.stopped"
 #: of a close's time, what the writer keeps for finishing the file (the last chunk, the summary, the footer: a few
@@ -215,48 +213,6 @@ def _os_error_text(exc: OSError) -> str:
 
 _COMPACT_JSON = json.JSONEncoder(separators=(",", ":"))  # json.dumps(obj, separators=(",", ":")), the encoder made once
 _json_str = json.encoder.encode_basestring_ascii  # how json.dumps writes a str (ensure_ascii)
-
-
-# --------------------------------------------------------------------------- settings
-
-
-@config_dataclass
-class RecordConfig:
-    """``record``: the flight recording, an MCAP file of the daemon's inputs and outputs (the daemon's
-    section, composed by :class:`onboard.app.config.OnboardConfig`; groundsim builds one from its options).
-    Sizes in the file's units (MB, KB); :class:`FlightRecorder` reads them in bytes (``*_bytes``)."""
-
-    path: Annotated[str | None, Text(pattern=r"^.*\.mcap$", what="a file name ending in .mcap")] = None
-    frames: Bool = True
-    max_file_mb: Annotated[float, Number(1.0, 1_000_000.0)] = 2000.0
-    max_file_s: Annotated[float, Number(1.0, 86_400.0)] = 600.0
-    max_files: Annotated[int, Integer(0, 100_000)] = 0
-    chunk_kb: Annotated[int, Integer(16, 65_536)] = 1024
-    flush_interval_s: Annotated[float, Number(0.05, 60.0)] = 1.0
-    compression: Annotated[Literal["none", "lz4", "zstd"], Text()] = "none"
-    queue_mb: Annotated[float, Number(1.0, 4096.0)] = 64.0
-    sync_mb: Annotated[float, Number(0.0, 4096.0)] = 8.0
-    min_free_mb: Annotated[float, Number(0.0, 1_000_000.0)] = 200.0
-
-    @functools.cached_property
-    def max_file_bytes(self) -> int:
-        return int(self.max_file_mb * MB)
-
-    @functools.cached_property
-    def chunk_bytes(self) -> int:
-        return self.chunk_kb * 1024
-
-    @functools.cached_property
-    def queue_bytes(self) -> int:
-        return int(self.queue_mb * MB)
-
-    @functools.cached_property
-    def sync_bytes(self) -> int:
-        return int(self.sync_mb * MB)
-
-    @functools.cached_property
-    def min_free_bytes(self) -> int:
-        return int(self.min_free_mb * MB)
 
 
 class RecordingPoseSource:
