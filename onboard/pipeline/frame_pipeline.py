@@ -116,6 +116,7 @@ from onboard.estimation.time_offset import TimeOffsetEstimate, TimeOffsetEstimat
 from onboard.pipeline.admission import FrameAdmission
 from onboard.pipeline.answer_checks import estimate_problem, frame_shape_hw, tracker_problem
 from onboard.pipeline.coast import coast_estimate
+from onboard.pipeline.factories import make_estimator, make_tracker
 from onboard.pipeline.restamp import StampPoseHistory
 from onboard.pipeline.withholding import ZOOM_MISMATCH, Withholding
 
@@ -179,33 +180,6 @@ class Estimator(Protocol):
     def predict(self, t_s: float, p_cam_ned_m=None): ...
 
     def reset(self) -> None: ...
-
-
-def make_tracker(config: Any):
-    """The image chain of ``config``, fresh, in ``gcs.tracker_mode``: an
-    :class:`~onboard.imaging.objects_chain.ObjectChain` (``imaging.chain: objects``, the default) or a
-    :class:`~onboard.imaging.TargetTracker` (``single``)."""
-    from onboard.imaging import TargetTracker
-
-    if config.imaging.chain == "objects":
-        from onboard.imaging.objects_chain import ObjectChain
-
-        return ObjectChain(
-            config.camera.pinhole(),
-            config.imaging,
-            mode=config.gcs.tracker_mode,
-            attitude_white_sigma_rad=math.radians(config.estimator.attitude_white_sigma_deg),
-        )
-    return TargetTracker(config.imaging, mode=config.gcs.tracker_mode)
-
-
-def make_estimator(config: Any):
-    """The sliding-window estimator of ``config.estimator`` (None when disabled)."""
-    if not config.estimator.enabled:
-        return None
-    from onboard.estimation.sliding import SlidingWindowEstimator
-
-    return SlidingWindowEstimator(config.estimator.sliding_config(), noise=config.estimator.noise_model())
 
 
 def _track_key(pose: PoseAt) -> tuple[int, int]:
