@@ -196,26 +196,10 @@ def write_flight_report(
             )
         )
         summary["frame_seq"] = tr["seq"]
-    if objects and not truth_objects and truth:  # no scene: the target alone, from the truth rows (as eval's files)
-        truth_objects = [
-            {
-                "seq": r["seq"],
-                "time_boot_us": r["time_boot_us"],
-                "objects": [
-                    {
-                        "id": 0,
-                        "u_px": r.get("target_u_px"),
-                        "v_px": r.get("target_v_px"),
-                        "visibility": "visible" if r.get("target_visible") else "out_of_frame",
-                    }
-                ],
-            }
-            for r in truth
-        ]
-    if objects and truth_objects:
+    if objects and (truth_objects or truth):  # (no scene: the target alone, from the truth rows)
         from groundsim.evaluation.mot import recorded_mot
 
-        gt, trk, t_s = recorded_mot(truth_objects, objects)
+        gt, trk, t_s = recorded_mot(truth_objects or [], objects, truth)
         if gt:
             written.append(
                 plot_objects(out / "objects.png", gt, trk, t_s, f"{name}: objects tracked (paired within 3 px)")

@@ -31,6 +31,7 @@ import io
 import math
 import shutil
 from pathlib import Path
+from types import SimpleNamespace
 
 __all__ = [
     "BOX_SIDE_PX",
@@ -427,23 +428,36 @@ def object_timeline(gt_text: str, tracker_text: str, radius_px: float = MATCH_PX
     return {"objects": dict(sorted(objects.items())), "false": dict(sorted(false.items()))}
 
 
-def recorded_mot(truth_objects: list[dict], objects: list[dict]) -> tuple[str, str, list[float]]:
+def recorded_mot(
+    truth_objects: list[dict], objects: list[dict], truth: list[dict] | None = None
+) -> tuple[str, str, list[float]]:
     """The MOT files of a recorded flight, for :func:`object_timeline`: ``truth_objects`` the simulator's
     ``irtrack.truth_objects/1`` messages (one a rendered frame), ``objects`` the daemon's ``irtrack.objects/1`` (one
-    a frame its image chain took, recorded or replayed).  Frame k (from 1) is the k-th truth message in time; a
-    daemon's message counts on the frame of the same ``time_boot_us`` (its confirmed objects, as :func:`tracker_rows`
-    writes them), none on a frame it did not take.  Returns ``(gt text, tracker text, each frame's time in s from
-    the first)``."""
-    frames = sorted({int(m["time_boot_us"]): m for m in truth_objects}.items())
-    number = {t_us: k + 1 for k, (t_us, _) in enumerate(frames)}
+    a frame its image chain took, recorded or replayed); without truth objects (a scenario without a scene), the
+    target alone from ``truth``, the simulator's ``irtrack.truth/1`` rows, as the eval's files have it
+    (:func:`gt_rows`).  Frame k (from 1) is the k-th truth message in time; a daemon's message counts on the frame
+    of the same ``time_boot_us`` (its confirmed objects, as :func:`tracker_rows` writes them), none on a frame it did
+    not take.  Returns ``(gt text, tracker text, each frame's time in s from the first)``."""
+
+    def num(x) -> float:  # (null, JSON's not-a-number: behind the camera)
+        return math.nan if x is None else float(x)
+
     gt: list[str] = []
-    for t_us, m in frames:
-        for o in m.get("objects") or []:
-            u, v = o.get("u_px"), o.get("v_px")
-            if u is None or v is None or not (math.isfinite(u) and math.isfinite(v)):
-                continue  # behind the camera: nowhere in the image to put it
-            visible = o.get("visibility") == "visible"
-            gt.append(gt_line(number[t_us], int(o["id"]) + 1, float(u), float(v), 1 if visible else None, 1.0))
+    if truth_objects:
+        frames = sorted({int(m["time_boot_us"]): m for m in truth_objects}.items())
+        for k, (_t_us, m) in enumerate(frames):
+            labels = [
+                SimpleNamespace(object_id=int(o["id"]), u_px=num(o.get("u_px")), v_px=num(o.get("v_px")),
+                                visibility=o.get("visibility"))
+                for o in m.get("objects") or []
+            ]  # fmt: skip
+            gt += gt_rows(k + 1, labels)
+    else:
+        frames = sorted({int(r["time_boot_us"]): r for r in truth or []}.items())
+        for k, (_t_us, r) in enumerate(frames):
+            uv = (num(r.get("target_u_px")), num(r.get("target_v_px")))
+            gt += gt_rows(k + 1, None, uv, bool(r.get("target_visible")))
+    number = {t_us: k + 1 for k, (t_us, _) in enumerate(frames)}
     trk: list[str] = []
     for m in objects:
         k = number.get(int(m["time_boot_us"]))
