@@ -658,6 +658,12 @@ def main(argv: list[str]) -> None:
     ap.add_argument("--stages", action="store_true", help="objects chains: CPU ms by stage below each row")
     ap.add_argument("--misses", action="store_true", help="the target's missed frames below each row")
     ap.add_argument(
+        "--bound",
+        action="store_true",
+        help="below each seed: what a matched filter knowing the target's grey, size and place finds at the truth "
+        "(bench/imaging_bound.py), with the chain's bilinear background and a cubic one",
+    )
+    ap.add_argument(
         "--plots",
         metavar="DIR",
         help="draw each run's objects timeline (who was tracked when, as groundsim eval's <scenario>_objects.png) "
@@ -690,6 +696,11 @@ def main(argv: list[str]) -> None:
                 _print_row(f"{name}/s{seed}" if several else name, c, s, a)
                 if a.plots:
                     _plot_objects(Path(a.plots), name, seed, c, s, run)
+            if a.bound:
+                from bench.imaging_bound import bound_lines
+
+                for line in bound_lines(name, seed, a.cache, a.duration, a.frames):
+                    print("       " + line, flush=True)
         if several:
             for c in chains:
                 print("       " + seeds_summary(name, c, per_chain[c]), flush=True)
