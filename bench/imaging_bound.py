@@ -29,7 +29,13 @@ import cv2
 import numpy as np
 from scipy.special import erf
 
-from onboard.imaging.background_difference import background_difference, difference_centre, rotation_shift_px
+from onboard.imaging.background_difference import (
+    background_difference,
+    cubic_square,
+    difference_centre,
+    keys_weights,
+    rotation_shift_px,
+)
 from onboard.imaging.clutter import MEAN_ABS_TO_SIGMA
 
 __all__ = [
@@ -60,29 +66,6 @@ def point_footprint(du_px: float, dv_px: float, r: int = WINDOW_PX, sigma_px: fl
         return 0.5 * (erf((k + 0.5 - c) / s) - erf((k - 0.5 - c) / s))
 
     return np.outer(axis(dv_px), axis(du_px))
-
-
-def keys_weights(t: float, a: float = -0.5) -> np.ndarray:
-    """Keys' cubic convolution weights of the samples at -1, 0, 1, 2 for a point at fraction ``t`` of [0, 1)
-    (``a = -0.5``: the third-order accurate kernel)."""
-    x = np.array([1.0 + t, t, 1.0 - t, 2.0 - t])
-    near = (a + 2.0) * x**3 - (a + 3.0) * x**2 + 1.0
-    far = a * x**3 - 5.0 * a * x**2 + 8.0 * a * x - 4.0 * a
-    return np.where(x <= 1.0, near, far).astype(np.float32)
-
-
-def cubic_square(img: np.ndarray, side: int, cu_px: float, cv_px: float) -> np.ndarray:
-    """``img``'s ``side`` x ``side`` square centred at ``(cu_px, cv_px)`` (frames.py convention: pixel (i, j)
-    spans [j, j + 1) x [i, i + 1)), resampled by Keys' cubic convolution with exact weights (cv2.remap's
-    are quantised to 1/32 px); edge pixels repeated outside the frame, as ``cv2.getRectSubPix`` does."""
-    h = side // 2
-    x0, y0 = cu_px - 0.5 - h, cv_px - 0.5 - h  # the first sample, in pixel-index coordinates
-    ix, iy = math.floor(x0), math.floor(y0)
-    n = side + 3
-    big = cv2.getRectSubPix(img, (n, n), (ix - 1 + (n - 1) / 2, iy - 1 + (n - 1) / 2), patchType=cv2.CV_32F)
-    wx, wy = keys_weights(x0 - ix), keys_weights(y0 - iy)
-    rows = sum(wy[q] * big[q : q + side] for q in range(4))
-    return sum(wx[q] * rows[:, q : q + side] for q in range(4))
 
 
 @dataclass(frozen=True)
@@ -129,11 +112,12 @@ def _frames(run, lag: int, cubic: bool) -> tuple[list[_Frame], list[tuple[int, b
         cur, prev = run.frames[k].astype(np.float32), run.frames[k - lag].astype(np.float32)
         d, (du, dv) = background_difference(cur, prev, (u, v), shift, half_px=HALF_PX)
         cu, cv_ = difference_centre((u, v))
+        # the chain's displacement, the earlier square resampled either way
         if cubic:
             old = cubic_square(prev, side, cu - du, cv_ - dv)
-            d = cv2.getRectSubPix(cur, (side, side), (cu - 0.5, cv_ - 0.5), patchType=cv2.CV_32F) - old
         else:
             old = cv2.getRectSubPix(prev, (side, side), (cu - du - 0.5, cv_ - dv - 0.5), patchType=cv2.CV_32F)
+        d = cv2.getRectSubPix(cur, (side, side), (cu - 0.5, cv_ - 0.5), patchType=cv2.CV_32F) - old
         # square coordinates: pixel (i, j) of the square has its centre at (j, i); the target and where it was
         tu, tv = u - (cu - HALF_PX - 0.5) - 0.5, v - (cv_ - HALF_PX - 0.5) - 0.5
         then = [lb for lb in run.labels[k - lag] if lb[0] == 0]
@@ -214,7 +198,7 @@ def bound_lines(name: str, seed: int, cache, duration_s, frames) -> list[str]:
     lines = []
     for cubic in (False, True):
         b = known_signal_bound(run, cubic=cubic)
-        how = "cubic background" if cubic else "bilinear background (the chain's)"
+        how = "cubic background (the chain's)" if cubic else "bilinear background"
         if "fit" not in b:
             lines.append(f"known-signal bound, {how}: too few frames of the target")
             continue

@@ -27,6 +27,8 @@ __all__ = [
     "difference_centre",
     "difference_peak",
     "two_level_difference_cap",
+    "keys_weights",
+    "cubic_square",
 ]
 
 SURROUND_STEP_PX = 0.5  # surround_residuals' grid of displacements
@@ -130,6 +132,47 @@ def surround_residuals(
     return best(own_ij), best(alt_ij)
 
 
+def keys_weights(t: float, a: float = -0.5) -> np.ndarray:
+    """Keys' cubic convolution weights of the samples at -1, 0, 1, 2 for a point at fraction ``t`` of [0, 1)
+    (``a = -0.5``: the third-order accurate kernel)."""
+    x = np.array([1.0 + t, t, 1.0 - t, 2.0 - t])
+    near = (a + 2.0) * x**3 - (a + 3.0) * x**2 + 1.0
+    far = a * x**3 - 5.0 * a * x**2 + 8.0 * a * x - 4.0 * a
+    return np.where(x <= 1.0, near, far).astype(np.float32)
+
+
+def cubic_square(img: np.ndarray, side: int, cu_px: float, cv_px: float) -> np.ndarray:
+    """``img``'s ``side`` x ``side`` square centred at ``(cu_px, cv_px)`` (pixel (i, j) spans [j, j + 1) x
+    [i, i + 1)), resampled by Keys' cubic convolution with exact weights (cv2.remap's are quantised to 1/32 px),
+    float32; edge pixels repeated outside the frame, as ``cv2.getRectSubPix`` does.  Why not bilinear: the
+    optics blur a roof's edge over about a pixel, less than the pixel pitch can carry, and bilinear
+    interpolation of such an edge at a sub-pixel shift is off by up to ~6 % of its step (cubic ~3 %): on C2's roofs,
+    80 grey steps, that is more than the target's 2-grey signal (bench/imaging_bound.py)."""
+    h = side // 2
+    x0, y0 = cu_px - 0.5 - h, cv_px - 0.5 - h  # the first sample, in pixel-index coordinates
+    ix, iy = math.floor(x0), math.floor(y0)
+    n = side + 3
+    big = cv2.getRectSubPix(img, (n, n), (ix - 1 + (n - 1) / 2, iy - 1 + (n - 1) / 2), patchType=cv2.CV_32F)
+    wx, wy = keys_weights(x0 - ix), keys_weights(y0 - iy)
+    rows = wy[0] * big[0:side] + wy[1] * big[1 : side + 1] + wy[2] * big[2 : side + 2] + wy[3] * big[3 : side + 3]
+    out = (
+        wx[0] * rows[:, 0:side]
+        + wx[1] * rows[:, 1 : side + 1]
+        + wx[2] * rows[:, 2 : side + 2]
+        + wx[3] * rows[:, 3 : side + 3]
+    )
+    # held within the four pixels about each sample, as a bilinear value is: the kernel's negative lobes
+    # overshoot a step, and on ground quantised to two grey levels a value off {L, L + 1} would be read as
+    # signal (two_level_difference_cap's premise)
+    a, b, c, d = (
+        big[1 : side + 1, 1 : side + 1],
+        big[1 : side + 1, 2 : side + 2],
+        big[2 : side + 2, 1 : side + 1],
+        big[2 : side + 2, 2 : side + 2],
+    )
+    return np.clip(out, np.minimum(np.minimum(a, b), np.minimum(c, d)), np.maximum(np.maximum(a, b), np.maximum(c, d)))
+
+
 def _parabola_vertex(a: float, b: float, c: float) -> float:
     """Offset in (-0.5, 0.5) of the minimum of the parabola through (-1, a), (0, b), (1, c)."""
     d = a - 2.0 * b + c
@@ -157,7 +200,7 @@ def background_difference(
     displacement is searched within ``search_px`` of ``displacement_px`` (the least squared difference
     over the square with its ``2 blank_px + 1`` core left out, the object's own place; whole pixels, then
     a parabola through the neighbours), refined by up to ``refine_steps`` Gauss-Newton steps on the same
-    pixels (Lucas-Kanade), and ``previous``'s square so moved is taken bilinearly.  Returns (the
+    pixels (Lucas-Kanade), and ``previous``'s square so moved is resampled by :func:`cubic_square`.  Returns (the
     difference, float32, grey; the displacement found, px).
 
     What stays put on the ground (or moves with it) cancels, texture and field edges included; an
@@ -184,7 +227,7 @@ def background_difference(
     # region's (search_px, search_px) offset is previous's square moved by displacement_px exactly
     du = displacement_px[0] + search_px - (x + fx)
     dv = displacement_px[1] + search_px - (y + fy)
-    old = cv2.getRectSubPix(previous, (side, side), (u - du - 0.5, v - dv - 0.5), patchType=cv2.CV_32F)
+    old = cubic_square(previous, side, u - du, v - dv)
     keep = mask.astype(bool)
     du0, dv0 = du, dv
     for _ in range(refine_steps):
@@ -200,7 +243,7 @@ def background_difference(
         if abs(du + step_u - du0) > 0.5 or abs(dv + step_v - dv0) > 0.5:
             break  # beyond the parabola's own half-pixel: not a refinement
         du, dv = du + step_u, dv + step_v
-        old = cv2.getRectSubPix(previous, (side, side), (u - du - 0.5, v - dv - 0.5), patchType=cv2.CV_32F)
+        old = cubic_square(previous, side, u - du, v - dv)
         if abs(step_u) < 1e-3 and abs(step_v) < 1e-3:
             break
     return cur - old, (float(du), float(dv))
@@ -221,7 +264,7 @@ def two_level_difference_cap(
     ``cap_lsb`` 0).  ``level``: the grey of one level (:func:`grey_level`), also for frames of whole levels
     kept as float (the detector keeps a 16-bit frame as float32; a square off whole levels is never capped);
     None: an integer frame's one count, and no cap for a float frame.  Pixels on {L, L+1} differ by at most
-    one level, and so do their bilinear interpolations and 2 x 2 means; its own-sigma threshold there reads the toggling as noise (C2 seed 1,
+    one level, and so do their bilinear interpolations, :func:`cubic_square`'s (held within the four pixels about each sample) and 2 x 2 means; its own-sigma threshold there reads the toggling as noise (C2 seed 1,
     flat ground, frames 50-100: sigma 0.3-0.57 grey, 5 sigmas over the target's 1.7-2.1 grey).  Judged
     on the ``2 half_px + 1`` squares (whole pixels) about ``uv_px`` in ``current`` and about ``uv_px``
     minus ``displacement_px`` (:func:`background_difference`'s) in ``previous``, the gate's

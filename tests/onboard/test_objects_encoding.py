@@ -70,15 +70,21 @@ def test_frames_widened_to_16_bits_keep_the_8_bit_frames_tracks():
         np.testing.assert_allclose([o[4] for o in b], [o[4] for o in a], rtol=SCORE_RTOL, err_msg=str(k))
 
 
-def test_frames_shifted_to_16_bits_keep_the_8_bit_frames_tracks_exactly():
+def test_frames_shifted_to_16_bits_keep_the_8_bit_frames_tracks():
     """Sky and two-level ground, a point over the ground under its toggling pixels' threshold but over the cap: the
-    frames shifted by 8 bits (x 256, every rounding scaled exactly) give the 8-bit frames' tracks bit for bit (the
-    two-level rule on adjacent counts never capped the 16-bit ground).  x 257 rounds apart, and a contrast of
-    exactly one level, the cap, may fall either side of it."""
+    frames shifted by 8 bits (x 256) give the 8-bit frames' tracks, id for id and state for state (the two-level
+    rule on adjacent counts never capped the 16-bit ground).  Not bit for bit: the background's motion over the
+    window (its float32 phase correlation) rounds apart by ~1e-7 px, and a difference square resampled there moves
+    a tentative track's centre by ~1e-6 px.  x 257 rounds apart more, and a contrast of exactly one level, the
+    cap, may fall either side of it."""
     frames = _frames(ground=True)
     mono8 = _tracks(frames)
+    mono16 = _tracks([f.astype(np.uint16) << 8 for f in frames])
     assert sum(o[1] == "confirmed" for o in mono8[-1]) == len(POINTS)
-    assert _tracks([f.astype(np.uint16) << 8 for f in frames]) == mono8
+    for k, (a, b) in enumerate(zip(mono8, mono16)):
+        assert [(o[0], o[1]) for o in a] == [(o[0], o[1]) for o in b], k
+        np.testing.assert_allclose([o[2:4] for o in b], [o[2:4] for o in a], rtol=0, atol=ATOL_PX, err_msg=str(k))
+        np.testing.assert_allclose([o[4] for o in b], [o[4] for o in a], rtol=SCORE_RTOL, err_msg=str(k))
 
 
 @pytest.mark.parametrize(
