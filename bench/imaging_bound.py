@@ -89,7 +89,7 @@ class _Frame:
 
 def _frames(run, lag: int, cubic: bool) -> tuple[list[_Frame], list[tuple[int, bool]]]:
     """The windows at the truth of the target's counted frames, and every counted frame as (k, warm)."""
-    from bench.imaging_scenes import MIN_CONTRAST_NETD, SETTLE_S
+    from groundsim.evaluation.mot import MIN_CONTRAST_NETD, SETTLE_S
 
     K = run.intrinsics
     side = 2 * HALF_PX + 1
@@ -190,11 +190,8 @@ def known_signal_bound(run, lag: int = LAG, cubic: bool = False, thresholds=(2.0
     return out
 
 
-def bound_lines(name: str, seed: int, cache, duration_s, frames) -> list[str]:
-    """The ``--bound`` lines of one scene and seed (rendered or read from ``cache`` with the true attitude)."""
-    from bench.imaging_scenes import render_scene
-
-    run = render_scene(name, seed, frames, cache, duration_s=duration_s, nav_noise="exact")
+def bound_lines(run) -> list[str]:
+    """The ``--bound`` lines of one scene and seed (``run`` given the true attitude)."""
     lines = []
     for cubic in (False, True):
         b = known_signal_bound(run, cubic=cubic)

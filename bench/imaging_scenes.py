@@ -699,7 +699,10 @@ def main(argv: list[str]) -> None:
             if a.bound:
                 from bench.imaging_bound import bound_lines
 
-                for line in bound_lines(name, seed, a.cache, a.duration, a.frames):
+                truth = render_scene(
+                    name, seed, a.frames, a.cache, a.encoding, a.terrain_resolution, a.duration, "exact"
+                )
+                for line in bound_lines(truth):
                     print("       " + line, flush=True)
         if several:
             for c in chains:
