@@ -27,7 +27,6 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy.special import erf
 
 from onboard.imaging.background_difference import (
     background_difference,
@@ -37,6 +36,7 @@ from onboard.imaging.background_difference import (
     rotation_shift_px,
 )
 from onboard.imaging.clutter import MEAN_ABS_TO_SIGMA
+from onboard.imaging.signature import PSF_SIGMA_PX, point_footprint
 
 __all__ = [
     "PSF_SIGMA_PX",
@@ -48,24 +48,10 @@ __all__ = [
     "known_signal_bound",
 ]
 
-PSF_SIGMA_PX = 0.6  # groundsim's ir.blur_sigma_px default, which C1-C5 keep
 LAG = 8  # the objects chain's difference lag (frames)
 HALF_PX = 16  # the difference square's half side, as the chain's
 WINDOW_PX = 3  # the signal's (2 WINDOW_PX + 1)^2 window about the target
 AWAY_PX = 4.5  # pixels this far from the target and from where it was make the noise
-
-
-def point_footprint(du_px: float, dv_px: float, r: int = WINDOW_PX, sigma_px: float = PSF_SIGMA_PX) -> np.ndarray:
-    """The image of a point of unit flux at ``(du_px, dv_px)`` from the centre of the middle pixel of a
-    ``(2 r + 1)^2`` grid of whole pixels: the Gaussian optics (``sigma_px``) integrated over each pixel's
-    box (sums to 1 for a point well inside the grid)."""
-    k = np.arange(-r, r + 1, dtype=float)
-
-    def axis(c: float) -> np.ndarray:
-        s = sigma_px * math.sqrt(2.0)
-        return 0.5 * (erf((k + 0.5 - c) / s) - erf((k - 0.5 - c) / s))
-
-    return np.outer(axis(dv_px), axis(du_px))
 
 
 @dataclass(frozen=True)

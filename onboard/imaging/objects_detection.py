@@ -23,6 +23,7 @@ import numpy as np
 from onboard.imaging import kernels
 from onboard.imaging.background_difference import (
     background_difference,
+    difference_centre,
     difference_peak,
     rotation_shift_px,
     surround_residuals,
@@ -47,6 +48,7 @@ from onboard.imaging.clutter import (
     window_noise,
 )
 from onboard.imaging.objects_model import ObjectParams, StageTimes, TrackRecord, los_from_pixel, pixel_from_los
+from onboard.imaging.signature import Signature, signature_peak, square_sigma
 
 __all__ = [
     "ObjectDetector",
@@ -70,6 +72,10 @@ DIFFERENCE_SIGMA = 5.0  # its threshold in its own noise sigmas
 # 4 sigmas once in ~5000 frames
 DIFFERENCE_NEAR_PX, DIFFERENCE_NEAR_SIGMA = 1.5, 4.0
 DIFFERENCE_GATE_PX = 3.0  # its gate about the track's prediction
+# a held primary's signature (onboard.imaging.signature) is searched within this of its prediction, and must reach
+# this z: the grid's ~50 places pass 4 sigmas of Gaussian noise together about once in 600 frames
+SIGNATURE_GATE_PX, SIGNATURE_Z = 2.0, 4.0
+SIGNATURE_MIN_SIGMA_LSB = 1.0 / math.sqrt(6.0)  # two frames' quantisation: each uniform over one level
 DIFFERENCE_TWO_LEVEL_CAP = 1.25  # its threshold's cap on two-level ground, in levels: over one needs a third level
 SURROUND_MATCH_RATIO = 1.5  # a track's own displacement must fit its surroundings that much better to call them one
 STRIPE_EVERY = 8  # frames between column-offset measurements (and at once after an offset step)
@@ -99,6 +105,7 @@ class ObjectDetector:
         self.clutter = clutter
         self.frame_index = -1  # the frame detect() saw last
         self.level = 1.0  # the grey of one quantisation level of that frame
+        self.signature_hits = 0  # detections by a primary's occlusion signature, all told (onboard.imaging.signature)
         self.acquiring = True  # no primary target chosen yet (the tracker's to say): the quiet-block noise applies
         self.contrast: np.ndarray | None = None  # the last frame's point contrast and CFAR threshold
         self.threshold: np.ndarray | None = None
@@ -510,19 +517,22 @@ class ObjectDetector:
             return float("inf") if alt > 0 else float("nan")
         return alt / own
 
-    def difference_candidate(
-        self, puv: tuple[float, float], gate: float, R: np.ndarray, held: bool = False
-    ) -> PointCandidate | None:
-        """Track-aided detection against the background (where its motion is known): this frame minus the
-        one ``DIFFERENCE_LAG`` frames earlier registered on the prediction's surroundings, searched about
-        the camera's rotation plus that motion (:func:`onboard.imaging.background_difference.background_difference`); None
-        without a detection there (or without the frames or the motion it needs).  The caller leaves out
-        a prediction with another confirmed track within ``DIFFERENCE_HALF_PX``."""
+    def difference_square(self, puv: tuple[float, float], R: np.ndarray, measure: bool = True):
+        """This frame minus the one ``DIFFERENCE_LAG`` frames earlier, registered on ``puv``'s surroundings
+        (searched about the camera's rotation plus the background's own motion:
+        :func:`onboard.imaging.background_difference.background_difference`): ``(diff, moved, old)``, ``old`` the
+        registered earlier square, or None without the frames or the motion it needs.  ``measure`` False: the
+        background's motion only as far as it was measured already this window (none: the rotation's share
+        alone, the registration's search finds the rest within its 6 px), no phase correlation for it."""
         k = self.frame_index
         old, R0 = dict(self._recent).get(k - DIFFERENCE_LAG), self._poses.get(k - DIFFERENCE_LAG)
         if old is None or R0 is None or not self._recent or self._recent[-1][0] != k:
             return None
-        bg = self.background_over_window()  # measured when asked for: only once the frames are there
+        if measure:
+            bg = self.background_over_window()  # measured when asked for: only once the frames are there
+        else:
+            known = [m for q, m in self._motions.items() if q > k - self.params.confirm_window and m is not None]
+            bg = tuple(np.mean(np.array(known), axis=0)) if known else (0.0, 0.0)
         if bg is None:
             return None
         # where the background now at puv was DIFFERENCE_LAG frames ago: the rotation's share, then its own motion
@@ -530,15 +540,69 @@ class ObjectDetector:
         if p0 is None:
             return None
         du, dv = puv[0] - p0[0] + bg[0] * DIFFERENCE_LAG, puv[1] - p0[1] + bg[1] * DIFFERENCE_LAG
-        diff, moved = background_difference(self._recent[-1][1], old, puv, (du, dv), DIFFERENCE_HALF_PX)
+        current = self._recent[-1][1]
+        diff, moved = background_difference(current, old, puv, (du, dv), DIFFERENCE_HALF_PX)
+        cu, cv_ = difference_centre(puv)
+        side = 2 * DIFFERENCE_HALF_PX + 1
+        now = cv2.getRectSubPix(current, (side, side), (cu - 0.5, cv_ - 0.5), patchType=cv2.CV_32F)
+        return diff, moved, now - diff
+
+    def difference_candidate(
+        self,
+        puv: tuple[float, float],
+        gate: float,
+        R: np.ndarray,
+        held: bool = False,
+        signature: tuple[float, float] | None = None,
+    ) -> PointCandidate | None:
+        """Track-aided detection against the background (where its motion is known): the
+        :meth:`difference_square` about the prediction, its strongest 2 x 2 mean within the gate
+        (:func:`onboard.imaging.background_difference.difference_peak`); failing that, with ``signature`` (a
+        held primary's ``(A, T)``, :class:`onboard.imaging.signature.Signature`), the best place of its matched
+        filter within ``SIGNATURE_GATE_PX`` if its z reaches ``SIGNATURE_Z`` (a weak candidate).  None without
+        a detection there (or without the frames or the motion it needs).  The caller leaves out a prediction
+        with another confirmed track within ``DIFFERENCE_HALF_PX``."""
+        sq = self.difference_square(puv, R)
+        if sq is None:
+            return None
+        diff, moved, old = sq
+        k = self.frame_index
+        previous = dict(self._recent)[k - DIFFERENCE_LAG]
         # the frames are this one's levels (a 16-bit frame kept as float32 still whole levels; the old one,
         # were it another quantisation, is off them and left uncapped)
         cap_lsb = DIFFERENCE_TWO_LEVEL_CAP * self.clutter.two_level_cap_lsb
-        cap = two_level_difference_cap(self._recent[-1][1], old, puv, moved, cap_lsb, level=self.level)
+        cap = two_level_difference_cap(self._recent[-1][1], previous, puv, moved, cap_lsb, level=self.level)
         # a tighter gate than the point's: the difference keeps residuals of sharp field edges a few px away
         near = (DIFFERENCE_NEAR_PX, DIFFERENCE_NEAR_SIGMA) if held else (0.0, math.inf)
         floor = self.clutter.min_threshold_lsb * self.level
-        return difference_peak(diff, puv, min(gate, DIFFERENCE_GATE_PX), DIFFERENCE_SIGMA, floor, cap, *near)
+        c = difference_peak(diff, puv, min(gate, DIFFERENCE_GATE_PX), DIFFERENCE_SIGMA, floor, cap, *near)
+        if c is not None or signature is None:
+            return c
+        cu, cv_ = difference_centre(puv)
+        origin = (cu - DIFFERENCE_HALF_PX, cv_ - DIFFERENCE_HALF_PX)
+        found = signature_peak(
+            diff,
+            old,
+            (puv[0] - origin[0], puv[1] - origin[1]),
+            min(gate, SIGNATURE_GATE_PX),
+            signature,
+            SIGNATURE_Z,
+            origin,
+        )
+        self.signature_hits += found is not None
+        return None if found is None else found[0]
+
+    def learn_signature(self, signature: Signature, uv: tuple[float, float], R: np.ndarray) -> None:
+        """Add this frame's :meth:`difference_square` about a track measured at ``uv`` to its ``signature``."""
+        sq = self.difference_square(uv, R, measure=False)
+        if sq is None:
+            return
+        diff, _, old = sq
+        cu, cv_ = difference_centre(uv)
+        # no less than the quantisation of two frames: on whole grey levels most of a well registered flat square
+        # differs by exactly nothing, and its median would weigh that frame without bound
+        sigma = max(square_sigma(diff), SIGNATURE_MIN_SIGMA_LSB * self.level)
+        signature.add(diff, old, (uv[0] - cu + DIFFERENCE_HALF_PX, uv[1] - cv_ + DIFFERENCE_HALF_PX), sigma)
 
 
 def symmetric_deblend(

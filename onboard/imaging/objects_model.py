@@ -19,6 +19,7 @@ import numpy as np
 from onboard.core.errors import InputError
 from onboard.imaging.clutter import PointCandidate
 from onboard.imaging.detect import Detection
+from onboard.imaging.signature import Signature
 
 __all__ = [
     "OBJECT_STATES",
@@ -201,6 +202,10 @@ class TrackRecord:
     difference: PointCandidate | None = None  # this frame's background-difference detection, if that measured it
     # its last surroundings tests (ObjectDetector.surroundings_match: how much better its own displacement fits them)
     surround_matches: list = field(default_factory=list)
+    # the primary's occlusion signature, learned on the frames it is measured on (onboard.imaging.signature)
+    signature: Signature | None = None
+    weak_hit: bool = False  # this frame's measurement was a weak one (a near-threshold difference or the signature's)
+    signature_run: int = 0  # consecutive frames measured by its signature alone
 
 
 class StageTimes:
