@@ -1,5 +1,5 @@
-"""The known-signal bound of bench.imaging --bound: its footprint, its resampling, and its fit on a scene whose
-target's grey and size are known."""
+"""The known-signal bound of bench.imaging --bound: its resampling, and its fit on a scene whose target's grey and
+size are known (the footprint it shares with the chain: tests/onboard/test_signature.py)."""
 
 from __future__ import annotations
 
@@ -21,17 +21,6 @@ from bench.imaging_bound import (
 )
 from bench.imaging_scenes import SceneRun
 from onboard.core.frames import PinholeIntrinsics
-
-
-@given(st.floats(-0.5, 0.5), st.floats(-0.5, 0.5))
-@settings(max_examples=50, deadline=None)
-def test_point_footprint_holds_the_flux_at_the_point(du, dv):
-    f = point_footprint(du, dv)
-    k = np.arange(-3, 4)
-    assert f.sum() == pytest.approx(1.0, abs=1e-5)
-    # the centroid of the pixels is the point's place, within the sampling's own bias (under 1e-3 px at sigma 0.6)
-    assert float(f.sum(axis=0) @ k) == pytest.approx(du, abs=1e-3)
-    assert float(f.sum(axis=1) @ k) == pytest.approx(dv, abs=1e-3)
 
 
 @given(st.floats(0.0, 0.999))
