@@ -191,6 +191,12 @@ def _filter_map(diff: np.ndarray, old: np.ndarray, grey: float) -> np.ndarray:
     return ds_p / np.sqrt(np.maximum(ss_p, 1e-12))
 
 
+def _vertex(a: float, b: float, c: float) -> float:
+    """Offset in [-0.5, 0.5] of the maximum of the parabola through (-1, a), (0, b), (1, c)."""
+    d = a - 2.0 * b + c
+    return 0.0 if not d < 0.0 else float(np.clip(0.5 * (a - c) / d, -0.5, 0.5))
+
+
 def signature_peak(
     diff: np.ndarray,
     old: np.ndarray,
@@ -204,8 +210,8 @@ def signature_peak(
     :func:`_filter_map` (``s = A g (T - B)``, ``signature`` = (A, T); ``A`` only scales it), in robust spreads
     (1.4826 x the median absolute deviation) of the same filter over the square's pixels more than ``AWAY_PX``
     from its centre, from their median: a CFAR on the filter's own output, whatever the noise and the edges'
-    residuals there.  If that ``z`` reaches ``z_min``: a weak candidate at the centroid of the positive ``z``
-    about the pixel (image pixels: square coordinates plus ``origin_px``, the image position of the square's
+    residuals there.  If that ``z`` reaches ``z_min``: a weak candidate at the vertex of the parabolas through
+    ``z`` at the pixel and its neighbours along each axis (image pixels: square coordinates plus ``origin_px``, the image position of the square's
     pixel (0, 0) centre), and its ``z``; else None."""
     _, grey = signature
     zmap = _filter_map(diff, old, grey)
@@ -229,9 +235,8 @@ def signature_peak(
     best = float(zg[i, j])
     if not best >= z_min:
         return None
-    w = np.maximum(z[i - 1 : i + 2, j - 1 : j + 2], 0.0)
-    k = np.array([-1.0, 0.0, 1.0])
-    pu = j + float(w.sum(axis=0) @ k / w.sum())
-    pv = i + float(w.sum(axis=1) @ k / w.sum())
+    # the vertex of the parabola through the peak and its two neighbours, along each axis
+    pu = j + _vertex(float(z[i, j - 1]), best, float(z[i, j + 1]))
+    pv = i + _vertex(float(z[i - 1, j]), best, float(z[i + 1, j]))
     u, v = pu + origin_px[0], pv + origin_px[1]
     return PointCandidate(u, v, (int(u) - 1, int(v) - 1, 2, 2), 4, best * spread, best / z_min, True), best
