@@ -15,9 +15,10 @@ the mean absolute value).  With the target's grey, size and place all known this
 there is in Gaussian noise (Neyman-Pearson): its ``z`` has mean ``|s| / sigma`` and unit spread, so no detector
 working from that difference finds more of the frames at the same false-alarm rate per tested place.
 
-``cubic``: the same with the earlier frame resampled by Keys' cubic convolution instead of bilinearly (the
-chain's), which reproduces a sharp, blurred edge at a sub-pixel shift better: how much of the difference's
-noise at roof edges is the resampling's own.
+Printed twice: with the earlier frame resampled bilinearly, and by Keys' cubic convolution as the chain now
+resamples it (:func:`onboard.imaging.background_difference.cubic_square`), which reproduces a sharp, blurred edge
+at a sub-pixel shift better: how much of the difference's noise at roof edges is the resampling's own.  The chain's
+own test with a learned signature is :mod:`onboard.imaging.signature`.
 """
 
 from __future__ import annotations
