@@ -73,7 +73,8 @@ DIFFERENCE_SIGMA = 5.0  # its threshold in its own noise sigmas
 DIFFERENCE_NEAR_PX, DIFFERENCE_NEAR_SIGMA = 1.5, 4.0
 DIFFERENCE_GATE_PX = 3.0  # its gate about the track's prediction
 # a held primary's signature (onboard.imaging.signature) is searched within this of its prediction, and must reach
-# this z: the grid's ~50 places pass 4 sigmas of Gaussian noise together about once in 600 frames
+# this z (robust spreads of its own output over the square): the ~13 whole pixels within 2 px pass 4 of Gaussian
+# noise together about once in 2400 frames
 SIGNATURE_GATE_PX, SIGNATURE_Z = 2.0, 4.0
 SIGNATURE_MIN_SIGMA_LSB = 1.0 / math.sqrt(6.0)  # two frames' quantisation: each uniform over one level
 DIFFERENCE_TWO_LEVEL_CAP = 1.25  # its threshold's cap on two-level ground, in levels: over one needs a third level

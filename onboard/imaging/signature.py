@@ -41,7 +41,6 @@ MIN_FRAMES = 20  # frames learned before the signature is used
 MAX_GREY_SE = 15.0
 MAX_FRAMES = 120  # frames kept (the last ~16 s at 30 Hz, one in four): a target's aspect, and so A, drifts
 OUTLIER_CHI2 = 4.0  # a frame the first fit explains this many times worse than the median is left out
-STEP_PX = 0.5  # the search's grid in a gate
 
 
 def point_footprint(du_px: float, dv_px: float, r: int = WINDOW_PX, sigma_px: float = PSF_SIGMA_PX) -> np.ndarray:
