@@ -1032,10 +1032,20 @@ def test_no_manoeuvre_is_planned_out_of_the_geofence(planner):
         assert cfg.inside_geofence(path)
 
 
-def test_an_advice_ended_by_withheld_geometry_says_so_not_target_lost():
-    """A frame stating a zoom the intrinsics are not for (or a camera / gimbal mismatch) keeps the target measured
-    with a pose, its line of sight and position withheld: the advice ends, as for a lost target, but the status
-    said 'target_lost' of a target still tracked in 2-D (a newcomer's walkthrough)."""
+@pytest.mark.parametrize(
+    "posed, why",
+    [
+        # a frame stating a zoom the intrinsics are not for (or a camera / gimbal mismatch) keeps the target
+        # measured with a pose, its line of sight and position withheld: the status said 'target_lost' of a target
+        # still tracked in 2-D (a newcomer's walkthrough)
+        (True, "geometry_withheld"),
+        # a MAVLink link cut for 3 s mid-manoeuvre (the simulator behind a UDP relay): the frames went on, the
+        # target measured in each, but without telemetry they had no pose and so no position
+        (False, "no_pose"),
+    ],
+)
+def test_an_advice_ended_by_a_frame_without_a_position_says_why_not_target_lost(posed, why):
+    """The advice ends, as for a lost target, and the status's advice_ends names why the frame had no position."""
     from onboard.app.observers import FrameResult
 
     now = [100.0]
@@ -1046,18 +1056,18 @@ def test_an_advice_ended_by_withheld_geometry_says_so_not_target_lost():
         k: None
         for k in ("p_ned_m", "lat_deg", "lon_deg", "alt_m", "v_ned_mps", "cov_p_ned_m2", "cov_v_ned_m2ps2", "range_m")
     }
-    withheld = dataclasses.replace(
+    measured = dataclasses.replace(
         track,
         measurement_valid=True,
         u_px=320.0,
         v_px=256.0,
-        pose_valid=True,
+        pose_valid=posed,
         los=None,
         range_sigma_ratio=None,
         **no_position,
     )
-    tap.on_frame(None, FrameResult(0, True, _pose(), withheld, None))
-    assert tap._advice is None and tap.status()["setpoints"]["advice_ends"] == {"geometry_withheld": 1}
+    tap.on_frame(None, FrameResult(0, True, _pose() if posed else None, measured, None))
+    assert tap._advice is None and tap.status()["setpoints"]["advice_ends"] == {why: 1}
 
 
 def test_a_gnss_report_that_stops_on_a_vehicle_that_never_had_a_3d_fix_does_not_stop_the_setpoints():
@@ -1079,34 +1089,6 @@ def test_a_gnss_report_that_stops_on_a_vehicle_that_never_had_a_3d_fix_does_not_
     assert step(0.1).send
     d = step(GNSS_STALE_S + 0.5)
     assert d.send and d.v_ned_mps.any() and gate.state == "sending", d.why
-
-
-def test_an_advice_ended_by_a_frame_without_a_pose_says_so_not_target_lost():
-    """A MAVLink link cut for 3 s mid-manoeuvre (the simulator behind a UDP relay): the frames went on, the target
-    measured in each (state tracking), but without telemetry they had no pose and so no position; the advice ended
-    and the status's advice_ends said 'target_lost' of a target tracked all along.  It says 'no_pose'."""
-    from onboard.app.observers import FrameResult
-
-    now = [100.0]
-    tap, _link, _sent = _in_loop_tap(now)
-    track = _ranging_track()
-    assert tap.step(track, _pose(), now[0]) is not None and tap._advice is not None
-    no_position = {
-        k: None
-        for k in ("p_ned_m", "lat_deg", "lon_deg", "alt_m", "v_ned_mps", "cov_p_ned_m2", "cov_v_ned_m2ps2", "range_m")
-    }
-    unposed = dataclasses.replace(
-        track,
-        measurement_valid=True,
-        u_px=320.0,
-        v_px=256.0,
-        pose_valid=False,
-        los=None,
-        range_sigma_ratio=None,
-        **no_position,
-    )
-    tap.on_frame(None, FrameResult(0, True, None, unposed, None))
-    assert tap._advice is None and tap.status()["setpoints"]["advice_ends"] == {"no_pose": 1}
 
 
 def test_a_stop_is_logged_once_with_how_the_setpoints_resume(caplog):
