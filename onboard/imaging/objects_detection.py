@@ -521,8 +521,8 @@ class ObjectDetector:
     def difference_square(self, puv: tuple[float, float], R: np.ndarray, measure: bool = True):
         """This frame minus the one ``DIFFERENCE_LAG`` frames earlier, registered on ``puv``'s surroundings
         (searched about the camera's rotation plus the background's own motion:
-        :func:`onboard.imaging.background_difference.background_difference`): ``(diff, moved, old)``, ``old`` the
-        registered earlier square, or None without the frames or the motion it needs.  ``measure`` False: the
+        :func:`onboard.imaging.background_difference.background_difference`): ``(diff, moved, previous)``,
+        ``previous`` that earlier frame, or None without the frames or the motion it needs.  ``measure`` False: the
         background's motion only as far as it was measured already this window (none: the rotation's share
         alone, the registration's search finds the rest within its 6 px), no phase correlation for it."""
         k = self.frame_index
@@ -541,12 +541,16 @@ class ObjectDetector:
         if p0 is None:
             return None
         du, dv = puv[0] - p0[0] + bg[0] * DIFFERENCE_LAG, puv[1] - p0[1] + bg[1] * DIFFERENCE_LAG
-        current = self._recent[-1][1]
-        diff, moved = background_difference(current, old, puv, (du, dv), DIFFERENCE_HALF_PX)
+        diff, moved = background_difference(self._recent[-1][1], old, puv, (du, dv), DIFFERENCE_HALF_PX)
+        return diff, moved, old
+
+    def _registered_earlier(self, puv: tuple[float, float], diff: np.ndarray) -> np.ndarray:
+        """The earlier frame's square as :meth:`difference_square` registered it about ``puv``: this frame's square
+        minus ``diff`` (taken only where the signature needs it)."""
         cu, cv_ = difference_centre(puv)
         side = 2 * DIFFERENCE_HALF_PX + 1
-        now = cv2.getRectSubPix(current, (side, side), (cu - 0.5, cv_ - 0.5), patchType=cv2.CV_32F)
-        return diff, moved, now - diff
+        now = cv2.getRectSubPix(self._recent[-1][1], (side, side), (cu - 0.5, cv_ - 0.5), patchType=cv2.CV_32F)
+        return now - diff
 
     def difference_candidate(
         self,
@@ -566,9 +570,7 @@ class ObjectDetector:
         sq = self.difference_square(puv, R)
         if sq is None:
             return None
-        diff, moved, old = sq
-        k = self.frame_index
-        previous = dict(self._recent)[k - DIFFERENCE_LAG]
+        diff, moved, previous = sq
         # the frames are this one's levels (a 16-bit frame kept as float32 still whole levels; the old one,
         # were it another quantisation, is off them and left uncapped)
         cap_lsb = DIFFERENCE_TWO_LEVEL_CAP * self.clutter.two_level_cap_lsb
@@ -583,7 +585,7 @@ class ObjectDetector:
         origin = (cu - DIFFERENCE_HALF_PX, cv_ - DIFFERENCE_HALF_PX)
         found = signature_peak(
             diff,
-            old,
+            self._registered_earlier(puv, diff),
             (puv[0] - origin[0], puv[1] - origin[1]),
             min(gate, SIGNATURE_GATE_PX),
             signature,
@@ -598,7 +600,8 @@ class ObjectDetector:
         sq = self.difference_square(uv, R, measure=False)
         if sq is None:
             return
-        diff, _, old = sq
+        diff = sq[0]
+        old = self._registered_earlier(uv, diff)
         cu, cv_ = difference_centre(uv)
         # no less than the quantisation of two frames: on whole grey levels most of a well registered flat square
         # differs by exactly nothing, and its median would weigh that frame without bound
