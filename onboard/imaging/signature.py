@@ -54,13 +54,16 @@ def point_footprint(du_px: float, dv_px: float, r: int = WINDOW_PX, sigma_px: fl
     return np.outer(ay, ax)
 
 
+def _away(side: int) -> np.ndarray:
+    """A ``side`` x ``side`` square's pixels more than ``AWAY_PX`` from its centre."""
+    off = np.arange(side) - side // 2
+    return np.hypot(off[:, None], off[None, :]) > AWAY_PX
+
+
 def square_sigma(diff: np.ndarray) -> float:
     """The difference square's noise (grey): 1.4826 x the median absolute value of its pixels more than
     ``AWAY_PX`` from its centre (robust to the target's own earlier place, a few pixels off)."""
-    h = diff.shape[0] // 2
-    off = np.arange(diff.shape[0]) - h
-    away = np.hypot(off[:, None], off[None, :]) > AWAY_PX
-    return 1.4826 * float(np.median(np.abs(diff[away])))
+    return 1.4826 * float(np.median(np.abs(diff[_away(diff.shape[0])])))
 
 
 def _window(centre_ij: tuple[int, int], side: int) -> tuple[slice, slice] | None:
@@ -84,7 +87,7 @@ class Signature:
     __slots__ = ("_rows", "frames", "_fitted")
 
     def __init__(self) -> None:
-        # per frame: (A^T W A (2 x 2), A^T W d (2), d^T W d, pixels, its background's grey); ~0.1 KB each
+        # per frame: (A^T W A (2 x 2), A^T W d (2), d^T W d, pixels); ~0.1 KB each
         self._rows: deque = deque(maxlen=MAX_FRAMES)
         self.frames = 0  # frames added, all told
         self._fitted: tuple[int, tuple[float, float] | None] = (-1, None)  # (frames when fitted, the fit)
@@ -101,13 +104,13 @@ class Signature:
         # d = (A T) g - A (g B): columns g and -g B
         ata = w * np.array([[g @ g, -(g @ fb)], [-(g @ fb), fb @ fb]])
         atb = w * np.array([g @ d, -(fb @ d)])
-        self._rows.append((ata, atb, w * float(d @ d), d.size, float(fb.sum() / g.sum())))
+        self._rows.append((ata, atb, w * float(d @ d), d.size))
         self.frames += 1
 
     def fit(self) -> tuple[float, float] | None:
         """``(A px^2, T grey)``, or None: too few frames, no area, or a ``T`` uncertain by more than ``MAX_GREY_SE``
-        (backgrounds too alike to tell ``A`` from ``T`` among them); the last fit that was not, when there was one.  Least squares over the frames kept, then again without
-        the frames the first fit explains worst (reduced chi-square over ``OUTLIER_CHI2`` times the median: a
+        (backgrounds too alike to tell ``A`` from ``T`` among them); the last fit that was not, when there was one.
+        Least squares over the frames kept, then again without the frames the first fit explains worst (reduced chi-square over ``OUTLIER_CHI2`` times the median: a
         centre measured off the target, a neighbour in the window), the covariance scaled by the median.  Fitted
         again only after a frame was added."""
         if self._fitted[0] != self.frames:
@@ -215,11 +218,9 @@ def signature_peak(
     _, grey = signature
     zmap = _filter_map(diff, old, grey)
     side = diff.shape[0]
-    h = side // 2
-    off = np.arange(side) - h
     inner = np.zeros((side, side), bool)
     inner[WINDOW_PX:-WINDOW_PX, WINDOW_PX:-WINDOW_PX] = True
-    vals = zmap[inner & (np.hypot(off[:, None], off[None, :]) > AWAY_PX)]
+    vals = zmap[inner & _away(side)]
     med = float(np.median(vals))
     spread = 1.4826 * float(np.median(np.abs(vals - med)))
     if not spread > 0.0:
