@@ -124,6 +124,9 @@ def test_a_connection_without_a_handshake_held_at_close_is_named_in_the_warning(
     lv.start()
     # a raw TCP client that sends nothing (a port scan, an HTTP probe): the SDK holds it with no handshake timeout
     with socket.create_connection(("127.0.0.1", lv.port)), caplog.at_level(logging.WARNING, "onboard.io.live_view"):
+        # the SDK accepts on a thread of its own, unobservable from here: closed at once on a loaded machine, the
+        # server stopped before it had taken the connection, and no warning was due (1 run in 25 with the cores busy)
+        time.sleep(0.5)
         lv.close(timeout_s=0.3)
     (warning,) = [r.getMessage() for r in caplog.records if r.name == "onboard.io.live_view"]
     assert "did not stop within 0.3 s" in warning and "never completed its WebSocket handshake" in warning
