@@ -18,6 +18,7 @@ import math
 import cv2
 import numpy as np
 
+from onboard.imaging import kernels
 from onboard.imaging.clutter import MEAN_ABS_TO_SIGMA, PointCandidate
 
 __all__ = [
@@ -153,24 +154,10 @@ def cubic_square(img: np.ndarray, side: int, cu_px: float, cv_px: float) -> np.n
     ix, iy = math.floor(x0), math.floor(y0)
     n = side + 3
     big = cv2.getRectSubPix(img, (n, n), (ix - 1 + (n - 1) / 2, iy - 1 + (n - 1) / 2), patchType=cv2.CV_32F)
-    wx, wy = keys_weights(x0 - ix), keys_weights(y0 - iy)
-    rows = wy[0] * big[0:side] + wy[1] * big[1 : side + 1] + wy[2] * big[2 : side + 2] + wy[3] * big[3 : side + 3]
-    out = (
-        wx[0] * rows[:, 0:side]
-        + wx[1] * rows[:, 1 : side + 1]
-        + wx[2] * rows[:, 2 : side + 2]
-        + wx[3] * rows[:, 3 : side + 3]
-    )
     # held within the four pixels about each sample, as a bilinear value is: the kernel's negative lobes
     # overshoot a step, and on ground quantised to two grey levels a value off {L, L + 1} would be read as
     # signal (two_level_difference_cap's premise)
-    a, b, c, d = (
-        big[1 : side + 1, 1 : side + 1],
-        big[1 : side + 1, 2 : side + 2],
-        big[2 : side + 2, 1 : side + 1],
-        big[2 : side + 2, 2 : side + 2],
-    )
-    return np.clip(out, np.minimum(np.minimum(a, b), np.minimum(c, d)), np.maximum(np.maximum(a, b), np.maximum(c, d)))
+    return kernels.cubic_patch(big, keys_weights(x0 - ix), keys_weights(y0 - iy))
 
 
 def _parabola_vertex(a: float, b: float, c: float) -> float:

@@ -36,7 +36,16 @@ import numpy as np
 
 from onboard.core.jit import njit
 
-__all__ = ["area_mean", "cell_extremes", "contrast_and_cells", "defect_rate", "fits", "minus_columns", "warm"]
+__all__ = [
+    "area_mean",
+    "cell_extremes",
+    "contrast_and_cells",
+    "cubic_patch",
+    "defect_rate",
+    "fits",
+    "minus_columns",
+    "warm",
+]
 
 _WARM = False
 
@@ -449,6 +458,42 @@ def minus_columns(image: np.ndarray, offsets: np.ndarray, out: np.ndarray) -> bo
     return True
 
 
+@njit(cache=True, nogil=True)
+def _cubic_patch(big, wx, wy, out):
+    side = out.shape[0]
+    rows = np.empty((side, side + 3), np.float32)
+    for i in range(side):
+        for j in range(side + 3):
+            r = wy[0] * big[i, j]
+            r = r + wy[1] * big[i + 1, j]
+            r = r + wy[2] * big[i + 2, j]
+            r = r + wy[3] * big[i + 3, j]
+            rows[i, j] = r
+    for i in range(side):
+        for j in range(side):
+            o = wx[0] * rows[i, j]
+            o = o + wx[1] * rows[i, j + 1]
+            o = o + wx[2] * rows[i, j + 2]
+            o = o + wx[3] * rows[i, j + 3]
+            a, b = big[i + 1, j + 1], big[i + 1, j + 2]
+            c, d = big[i + 2, j + 1], big[i + 2, j + 2]
+            out[i, j] = min(max(o, min(min(a, b), min(c, d))), max(max(a, b), max(c, d)))
+
+
+def cubic_patch(big: np.ndarray, wx: np.ndarray, wy: np.ndarray) -> np.ndarray:
+    """The ``side`` x ``side`` cubic resampling of a float32 ``(side + 3)`` square patch by the four Keys weights
+    ``wx`` (along rows) and ``wy`` (along columns), float32, each value held within the four patch pixels about it:
+    :func:`onboard.imaging.background_difference.cubic_square`'s arithmetic (its numpy formulation: eight float32
+    products and sums over the whole square, each a rounding, then the clip), in one pass and the same values, bit
+    for bit: float32 products and sums in the same order, no fused multiply-add (no ``fastmath``).  Called four times
+    for each difference square (its registration's refinement), where numpy's sixteen small-array operations cost
+    ~60 us each time (``tests/onboard/test_imaging_kernels.py`` compares the two)."""
+    side = big.shape[0] - 3
+    out = np.empty((side, side), np.float32)
+    _cubic_patch(big, wx, wy, out)
+    return out
+
+
 def warm() -> None:
     """Compile (or load from the cache) the kernel for the float32 frames the detector passes: once per process,
     so that no frame pays it (the detector calls it at construction)."""
@@ -477,4 +522,5 @@ def warm() -> None:
     for kind in (np.uint8, np.uint16, np.float32):
         for frame in frames(kind):
             minus_columns(frame, np.zeros(16, np.float32), np.empty((16, 16), np.float32))
+    cubic_patch(img, np.zeros(4, np.float32), np.zeros(4, np.float32))  # getRectSubPix's float32 patch
     _WARM = True

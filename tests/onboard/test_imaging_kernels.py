@@ -377,3 +377,50 @@ def test_no_kernel_compiles_on_the_daemons_first_frames():
     out = subprocess.run([sys.executable, "-c", _NO_FIRST_FRAME_COMPILE], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.strip() == "{}", out.stdout
+
+
+def _cubic_numpy(big: np.ndarray, wx: np.ndarray, wy: np.ndarray) -> np.ndarray:
+    """The numpy formulation the cubic kernel replaced (background_difference.cubic_square's until it was compiled)."""
+    side = big.shape[0] - 3
+    rows = wy[0] * big[0:side] + wy[1] * big[1 : side + 1] + wy[2] * big[2 : side + 2] + wy[3] * big[3 : side + 3]
+    out = (
+        wx[0] * rows[:, 0:side]
+        + wx[1] * rows[:, 1 : side + 1]
+        + wx[2] * rows[:, 2 : side + 2]
+        + wx[3] * rows[:, 3 : side + 3]
+    )
+    a, b, c, d = (
+        big[1 : side + 1, 1 : side + 1],
+        big[1 : side + 1, 2 : side + 2],
+        big[2 : side + 2, 1 : side + 1],
+        big[2 : side + 2, 2 : side + 2],
+    )
+    return np.clip(out, np.minimum(np.minimum(a, b), np.minimum(c, d)), np.maximum(np.maximum(a, b), np.maximum(c, d)))
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.integers(0, 2**31 - 1),
+    st.sampled_from([4, 33]),
+    st.floats(0.0, 1.0, exclude_max=True),
+    st.floats(0.0, 1.0, exclude_max=True),
+    st.sampled_from(["grey8", "grey16", "float", "edge"]),
+)
+def test_cubic_patch_is_numpys_cubic_resampling_bit_for_bit(seed, side, tx, ty, kind):
+    from onboard.imaging.background_difference import keys_weights
+
+    rng = np.random.default_rng(seed)
+    n = side + 3
+    if kind == "grey8":
+        big = rng.integers(0, 256, (n, n)).astype(np.float32)
+    elif kind == "grey16":
+        big = rng.integers(0, 65536, (n, n)).astype(np.float32)
+    elif kind == "float":
+        big = rng.normal(130.0, 40.0, (n, n)).astype(np.float32)
+    else:  # a roof's edge on two-level ground: the clip holds values inside their four pixels
+        big = np.where(np.arange(n)[None, :] > n // 2, 205.0, 131.0) + rng.integers(0, 2, (n, n))
+        big = big.astype(np.float32)
+    wx, wy = keys_weights(tx), keys_weights(ty)
+    got = kernels.cubic_patch(big, wx, wy)
+    assert got.dtype == np.float32 and got.shape == (side, side)
+    assert np.array_equal(got, _cubic_numpy(big, wx, wy))
