@@ -83,6 +83,7 @@ from types import SimpleNamespace
 import cv2
 import numpy as np
 
+from bench import frame_speed_ms, machine_speed_ms
 from groundsim.evaluation.mot import (
     MATCH_PX,
     MIN_CONTRAST_NETD,
@@ -677,7 +678,9 @@ def main(argv: list[str]) -> None:
     print(
         f"image chain over rendered scenes (seed {', '.join(map(str, a.seed))}); match {MATCH_PX:.0f} px, Pd over contrast >= "
         f"{MIN_CONTRAST_NETD:.0f} NETD after {SETTLE_S:.0f} s visible; the chains given the camera attitude with the"
-        f" navigation errors {a.nav_noise or 'of each scenario (RTK unless it says)'}; wall ms on a shared machine (noisy)"
+        f" navigation errors {a.nav_noise or 'of each scenario (RTK unless it says)'}; wall ms on a shared machine (noisy);"
+        f" machine speed: a fixed Python loop {machine_speed_ms():.1f} CPU ms, fixed whole-frame passes"
+        f" {frame_speed_ms():.2f} CPU ms (lower is faster)"
     )
     print(
         f"{'scene':<6s} {'chain':<13s} {'frames':>6s} {'on target':>9s} {'Pd':>6s} {'Pd tgt':>6s} {'Pd warm':>7s}"

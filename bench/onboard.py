@@ -72,7 +72,7 @@ if __name__ == "__main__":  # one BLAS thread, as the daemon; must precede the n
 
 import numpy as np  # noqa: E402
 
-from bench import machine_speed_ms, pacing_factor, pin_to_one_cpu, run_benchmark  # noqa: E402
+from bench import frame_speed_ms, machine_speed_ms, pacing_factor, pin_to_one_cpu, run_benchmark  # noqa: E402
 from bench.options import (  # noqa: E402
     BenchParser,
     known_scenario,
@@ -856,7 +856,8 @@ def main(argv=None) -> int:
         ap.error(problem)
     print(
         f"bench.onboard: {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f} (numbers vary with load);"
-        f" machine speed: a fixed Python loop takes {machine_speed_ms():.1f} CPU ms (lower is faster)"
+        f" machine speed: a fixed Python loop takes {machine_speed_ms():.1f} CPU ms, fixed whole-frame passes"
+        f" {frame_speed_ms():.2f} CPU ms (lower is faster)"
     )
     tight_ms, paced_ratio = pacing_factor()
     print(
@@ -867,7 +868,10 @@ def main(argv=None) -> int:
         from bench.onboard_scene import bench_scene
 
         bench_scene(args.scene, args.scene_s, _cpu_snapshot, chain=args.chain or _default_chain())
-        print(f"   machine speed after: the fixed Python loop takes {machine_speed_ms():.1f} CPU ms")
+        print(
+            f"   machine speed after: the fixed Python loop takes {machine_speed_ms():.1f} CPU ms, the whole-frame"
+            f" passes {frame_speed_ms():.2f}"
+        )
         return 0
     if not args.no_latency:
         # first, before this process pins itself to one core
@@ -903,7 +907,10 @@ def main(argv=None) -> int:
                     + ","
                     f" median per-frame processing {r['processing_p50_ms']:.2f} ms"
                 )
-        print(f"   machine speed after: the fixed Python loop takes {machine_speed_ms():.1f} CPU ms")
+        print(
+            f"   machine speed after: the fixed Python loop takes {machine_speed_ms():.1f} CPU ms, the whole-frame"
+            f" passes {frame_speed_ms():.2f}"
+        )
     if args.parts_s > 0:
         bench_parts(args.parts_s, args.parts_repeats)  # before the pinning of bench_processing
     if args.floor_s > 0:

@@ -1,11 +1,11 @@
-"""The pacing probe printed by ``bench.onboard``: what it returns and what it refuses (no timing asserted)."""
+"""The pacing and speed probes printed by ``bench.onboard``: what they return and refuse (no timing asserted)."""
 
 import math
 
 import numpy as np
 import pytest
 
-from bench import _pacing_work, pacing_factor
+from bench import _pacing_work, frame_speed_ms, pacing_factor
 
 
 def test_pacing_work_is_a_fixed_workload():
@@ -24,6 +24,13 @@ def test_pacing_factor_returns_a_cost_and_a_ratio():
 def test_pacing_factor_refuses_bad_arguments(rate_hz, calls):
     with pytest.raises(ValueError, match="pacing_factor"):
         pacing_factor(rate_hz=rate_hz, calls=calls)
+
+
+def test_frame_speed_is_a_cpu_time_and_refuses_no_repeats():
+    ms = frame_speed_ms(repeats=1)
+    assert math.isfinite(ms) and ms > 0
+    with pytest.raises(ValueError, match="frame_speed_ms: repeats"):
+        frame_speed_ms(repeats=0)
 
 
 def test_bench_onboard_paced_processing_prints_its_figures():
@@ -46,6 +53,8 @@ def test_bench_onboard_paced_processing_prints_its_figures():
         out,
     )
     assert m is not None, out
+    # the machine's two speed probes head the output, so that runs on a drifting VM can be compared
+    assert re.search(r"a fixed Python loop takes [\d.]+ CPU ms, fixed whole-frame passes [\d.]+ CPU ms", out), out
     n, paced_ms, b2b_ms, ratio, cpu_s_per_s = int(m[1]), *map(float, m.group(2, 3, 4, 5))
     assert n == 3
     assert paced_ms > 0 and b2b_ms > 0
