@@ -106,7 +106,6 @@ class ObjectDetector:
         self.clutter = clutter
         self.frame_index = -1  # the frame detect() saw last
         self.level = 1.0  # the grey of one quantisation level of that frame
-        self.signature_hits = 0  # detections by a primary's occlusion signature, all told (onboard.imaging.signature)
         self.acquiring = True  # no primary target chosen yet (the tracker's to say): the quiet-block noise applies
         self.contrast: np.ndarray | None = None  # the last frame's point contrast and CFAR threshold
         self.threshold: np.ndarray | None = None
@@ -559,17 +558,18 @@ class ObjectDetector:
         R: np.ndarray,
         held: bool = False,
         signature: tuple[float, float] | None = None,
-    ) -> PointCandidate | None:
+    ) -> tuple[PointCandidate | None, bool]:
         """Track-aided detection against the background (where its motion is known): the
         :meth:`difference_square` about the prediction, its strongest 2 x 2 mean within the gate
         (:func:`onboard.imaging.background_difference.difference_peak`); failing that, with ``signature`` (a
         held primary's ``(A, T)``, :class:`onboard.imaging.signature.Signature`), the best place of its matched
-        filter within ``SIGNATURE_GATE_PX`` if its z reaches ``SIGNATURE_Z`` (a weak candidate).  None without
-        a detection there (or without the frames or the motion it needs).  The caller leaves out a prediction
-        with another confirmed track within ``DIFFERENCE_HALF_PX``."""
+        filter within ``SIGNATURE_GATE_PX`` if its z reaches ``SIGNATURE_Z`` (a weak candidate).  Returns
+        ``(candidate, by_signature)``: the candidate None without a detection there (or without the frames or the
+        motion it needs), ``by_signature`` whether the signature's filter found it.  The caller leaves out a
+        prediction with another confirmed track within ``DIFFERENCE_HALF_PX``."""
         sq = self.difference_square(puv, R)
         if sq is None:
-            return None
+            return None, False
         diff, moved, previous = sq
         # the frames are this one's levels (a 16-bit frame kept as float32 still whole levels; the old one,
         # were it another quantisation, is off them and left uncapped)
@@ -580,7 +580,7 @@ class ObjectDetector:
         floor = self.clutter.min_threshold_lsb * self.level
         c = difference_peak(diff, puv, min(gate, DIFFERENCE_GATE_PX), DIFFERENCE_SIGMA, floor, cap, *near)
         if c is not None or signature is None:
-            return c
+            return c, False
         cu, cv_ = difference_centre(puv)
         origin = (cu - DIFFERENCE_HALF_PX, cv_ - DIFFERENCE_HALF_PX)
         found = signature_peak(
@@ -592,8 +592,7 @@ class ObjectDetector:
             SIGNATURE_Z,
             origin,
         )
-        self.signature_hits += found is not None
-        return None if found is None else found[0]
+        return (None, False) if found is None else (found[0], True)
 
     def learn_signature(self, signature: Signature, uv: tuple[float, float], R: np.ndarray) -> None:
         """Add this frame's :meth:`difference_square` about a track measured at ``uv`` to its ``signature``."""

@@ -174,7 +174,7 @@ class BelowThreshold:
             if not self.detector.textured((u, v)):
                 continue
             tried += 1
-            d = self.detector.difference_candidate((u, v), DIFFERENCE_GATE_PX, R)
+            d, _ = self.detector.difference_candidate((u, v), DIFFERENCE_GATE_PX, R)
             if d is not None:
                 self._difference_ids.add(id(d))
                 out.append(d)
@@ -202,9 +202,10 @@ class BelowThreshold:
         fit = None
         if t.object_id == self._primary and t.signature is not None and t.signature_run < SIGNATURE_MAX_RUN:
             fit = t.signature.fit()
-        hits = self.detector.signature_hits
-        c = self.detector.difference_candidate(puv, gate, R, held=t.confirmed and t.misses == 0, signature=fit)
-        if c is not None and self.detector.signature_hits != hits:
+        c, by_signature = self.detector.difference_candidate(
+            puv, gate, R, held=t.confirmed and t.misses == 0, signature=fit
+        )
+        if c is not None and by_signature:
             self._signature_ids.add(id(c))
         # its square is taken with the frame's edge pixels repeated beyond it, so a prediction at the edge can peak
         # off the frame: no measurement (the frame pipeline refuses a measured centre off the frame, and with it

@@ -376,9 +376,9 @@ def test_a_background_difference_that_peaks_off_the_frame_measures_nothing(uv, m
 
     tr = ObjectTracker(K)
     off = PointCandidate(uv[0], uv[1], (int(uv[0]) - 1, int(uv[1]) - 1, 2, 2), 4, 9.0, 2.0)
-    monkeypatch.setattr(tr.detector, "difference_candidate", lambda *a, **k: off)
+    monkeypatch.setattr(tr.detector, "difference_candidate", lambda *a, **k: (off, False))
     inside = dataclasses.replace(off, u_px=K.width_px - 0.5, v_px=K.height_px - 0.5)
     track = types.SimpleNamespace(object_id=1, confirmed=True, misses=0, signature=None)  # the one track there is
     assert tr._difference_candidate(track, uv, 4.0, np.eye(3)) is None
-    monkeypatch.setattr(tr.detector, "difference_candidate", lambda *a, **k: inside)
+    monkeypatch.setattr(tr.detector, "difference_candidate", lambda *a, **k: (inside, False))
     assert tr._difference_candidate(track, uv, 4.0, np.eye(3)) is inside
