@@ -37,6 +37,7 @@ from onboard.imaging.background_difference import (
     rotation_shift_px,
 )
 from onboard.imaging.clutter import MEAN_ABS_TO_SIGMA
+from onboard.imaging.objects_detection import DIFFERENCE_HALF_PX, DIFFERENCE_LAG
 from onboard.imaging.signature import PSF_SIGMA_PX, point_footprint
 
 __all__ = [
@@ -49,8 +50,8 @@ __all__ = [
     "known_signal_bound",
 ]
 
-LAG = 8  # the objects chain's difference lag (frames)
-HALF_PX = 16  # the difference square's half side, as the chain's
+LAG = DIFFERENCE_LAG  # the objects chain's difference lag (frames)
+HALF_PX = DIFFERENCE_HALF_PX  # the difference square's half side, as the chain's
 WINDOW_PX = 3  # the signal's (2 WINDOW_PX + 1)^2 window about the target
 AWAY_PX = 4.5  # pixels this far from the target and from where it was make the noise
 
